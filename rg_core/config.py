@@ -1,0 +1,186 @@
+"""One configuration format: YAML mapped onto typed dataclasses.
+
+Defaults live in code (the dataclasses below). A YAML file only overrides what it names; an
+unknown key or a value of the wrong type is an error that names the full key path, so a typo in
+a robot's config fails at start-up instead of being silently ignored.
+"""
+from __future__ import annotations
+
+import dataclasses
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A configuration file or dict does not match the schema; the message names the key."""
+
+
+@dataclass
+class SynthConfig:
+    """Synthetic scene generator (`rg synth`)."""
+
+    views: int = 100
+    """Number of rendered views on the ring around the table."""
+    width: int = 320
+    """Image width in pixels."""
+    height: int = 240
+    """Image height in pixels."""
+    objects: int = 7
+    """Number of objects dropped on the table."""
+    seed: int = 0
+    """Random seed: same seed, same scene, byte for byte."""
+    fov_y_deg: float = 60.0
+    """Vertical field of view of the pinhole camera."""
+    near: float = 0.02
+    """Renderer near plane (m)."""
+    far: float = 6.0
+    """Renderer far plane (m); depth beyond it is stored as invalid (0)."""
+    test_every: int = 8
+    """Every n-th view (index % n == 0) goes to transforms_test.json."""
+    ring_radius: tuple[float, float] = (0.38, 0.62)
+    """Min/max horizontal camera distance from the table centre (m)."""
+    ring_height: tuple[float, float] = (0.25, 0.50)
+    """Min/max camera height above the table top (m)."""
+    settle_steps: int = 480
+    """Physics steps (240 Hz) to let dropped objects settle."""
+    spread: float = 0.16
+    """Half-width (m) of the square on the table where objects are dropped."""
+    point_cloud_voxel: float = 0.005
+    """Voxel size (m) of points3d.ply."""
+    workers: int = 2
+    """Processes that render views in parallel (output does not depend on it)."""
+
+
+@dataclass
+class DemoConfig:
+    """The main job (`rg demo`) on an embedded default scene."""
+
+    views: int = 16
+    width: int = 160
+    height: int = 120
+    objects: int = 5
+    seed: int = 0
+    sheet_views: int = 4
+    """How many views the contact sheet shows."""
+
+
+@dataclass
+class RGConfig:
+    """Top level of a ReasonGrounder configuration file."""
+
+    synth: SynthConfig = field(default_factory=SynthConfig)
+    demo: DemoConfig = field(default_factory=DemoConfig)
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", None) or str(tp)
+
+
+def _convert(value: Any, tp: Any, key: str) -> Any:
+    """Check `value` against annotation `tp`, converting YAML lists to tuples; raise naming `key`."""
+    origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{key}: expected a mapping for section {tp.__name__}, got {type(value).__name__}")
+        return _build(tp, value, key)
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if not isinstance(value, (list, tuple)) or len(value) != len(args):
+            raise ConfigError(f"{key}: expected a list of {len(args)} values, got {value!r}")
+        return tuple(_convert(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+    if origin is list:
+        (arg,) = typing.get_args(tp)
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{key}: expected a list, got {type(value).__name__}")
+        return [_convert(v, arg, f"{key}[{i}]") for i, v in enumerate(value)]
+    if origin is typing.Union or str(origin) == "types.UnionType":
+        args = typing.get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _convert(value, a, key)
+            except ConfigError:
+                pass
+        raise ConfigError(f"{key}: expected {tp}, got {value!r}")
+    if tp is float:
+        # YAML writes 1 for 1.0; accept ints for floats but never bools.
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{key}: expected a number, got {value!r}")
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key}: expected true/false, got {value!r}")
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{key}: expected a string, got {value!r}")
+        return value
+    if tp is Any:
+        return value
+    raise ConfigError(f"{key}: unsupported type {_type_name(tp)}")
+
+
+def _build(cls: type, data: dict, prefix: str) -> Any:
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    for k in data:
+        if k not in names:
+            path = f"{prefix}.{k}" if prefix else str(k)
+            raise ConfigError(f"{path}: unknown key (known keys: {', '.join(sorted(names))})")
+    kwargs = {}
+    for k, v in data.items():
+        path = f"{prefix}.{k}" if prefix else k
+        kwargs[k] = _convert(v, hints[k], path)
+    return cls(**kwargs)
+
+
+def config_from_dict(data: dict | None, cls: type = RGConfig) -> Any:
+    """Build a config dataclass from a plain dict, validating every key and type."""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"top level: expected a mapping, got {type(data).__name__}")
+    return _build(cls, data, "")
+
+
+def load_config(path: str | Path | None = None) -> RGConfig:
+    """Load a YAML configuration file (None: all defaults)."""
+    if path is None:
+        return RGConfig()
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: configuration file not found")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    try:
+        return config_from_dict(data)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from exc
+
+
+def config_to_dict(cfg: Any) -> dict:
+    """Plain-dict view of a config (tuples become lists), e.g. to write YAML or JSON."""
+
+    def plain(v: Any) -> Any:
+        if isinstance(v, tuple):
+            return [plain(x) for x in v]
+        if isinstance(v, list):
+            return [plain(x) for x in v]
+        if isinstance(v, dict):
+            return {k: plain(x) for k, x in v.items()}
+        return v
+
+    return plain(dataclasses.asdict(cfg))

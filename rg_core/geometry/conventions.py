@@ -1,0 +1,115 @@
+"""The one module that owns camera and pose conventions.
+
+Inside the library every pose is a 4x4 camera-to-world matrix with **OpenCV camera axes**
+(x right, y down, z forward) and every intrinsics matrix uses OpenCV pixel coordinates (the centre
+of the top-left pixel is (0, 0)). Everything else is converted at the edges, here:
+
+- NeRF/Blender/nerfstudio camera axes (x right, y up, z backward), as in `transforms_*.json`;
+  their principal point is in pixel-corner coordinates (centre of the top-left pixel is (0.5, 0.5)).
+- ROS: the optical frame (`*_optical_frame`, REP 103) has OpenCV axes; the body frame of a camera
+  link is x forward, y left, z up.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+# Flip between OpenCV camera axes and NeRF/Blender camera axes (its own inverse).
+CV_FROM_GL = np.diag([1.0, -1.0, -1.0, 1.0])
+# Rotation taking a vector in the ROS optical frame to the ROS body frame (x fwd, y left, z up).
+BODY_FROM_OPTICAL = np.array(
+    [[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+)
+
+
+class PoseError(ValueError):
+    """A matrix that should be a rigid transform is not one."""
+
+
+def check_rigid(T: np.ndarray, what: str = "pose", tol: float = 1e-3) -> np.ndarray:
+    """Return `T` as float64 [4, 4] if it is a finite rigid transform, else raise PoseError."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise PoseError(f"{what}: expected a 4x4 matrix, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise PoseError(f"{what}: contains NaN or inf")
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=tol):
+        raise PoseError(f"{what}: last row is {T[3].tolist()}, expected [0, 0, 0, 1]")
+    R = T[:3, :3]
+    ortho_err = float(np.abs(R.T @ R - np.eye(3)).max())
+    if ortho_err > tol:
+        raise PoseError(f"{what}: rotation is not orthonormal (max |R^T R - I| = {ortho_err:.3g})")
+    det = float(np.linalg.det(R))
+    if det < 0:
+        raise PoseError(f"{what}: rotation is a reflection (det = {det:.3f}), expected det = +1")
+    return T
+
+
+def opencv_from_nerf(c2w_nerf: np.ndarray) -> np.ndarray:
+    """Camera-to-world with NeRF/Blender axes -> camera-to-world with OpenCV axes."""
+    return np.asarray(c2w_nerf, dtype=np.float64) @ CV_FROM_GL
+
+
+def nerf_from_opencv(c2w_cv: np.ndarray) -> np.ndarray:
+    """Camera-to-world with OpenCV axes -> camera-to-world with NeRF/Blender axes."""
+    return np.asarray(c2w_cv, dtype=np.float64) @ CV_FROM_GL
+
+
+def optical_from_body(c2w_body: np.ndarray) -> np.ndarray:
+    """ROS camera body frame pose (x fwd, y left, z up) -> optical frame pose (OpenCV axes)."""
+    return np.asarray(c2w_body, dtype=np.float64) @ BODY_FROM_OPTICAL
+
+
+def body_from_optical(c2w_optical: np.ndarray) -> np.ndarray:
+    """ROS optical frame pose -> camera body frame pose."""
+    return np.asarray(c2w_optical, dtype=np.float64) @ BODY_FROM_OPTICAL.T
+
+
+def principal_point_from_corner(cx: float, cy: float) -> tuple[float, float]:
+    """nerfstudio/Blender principal point (pixel-corner origin) -> OpenCV (pixel-centre origin)."""
+    return cx - 0.5, cy - 0.5
+
+
+def principal_point_to_corner(cx: float, cy: float) -> tuple[float, float]:
+    """OpenCV principal point -> nerfstudio/Blender principal point."""
+    return cx + 0.5, cy + 0.5
+
+
+def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """3x3 pinhole matrix K (OpenCV pixel coordinates)."""
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world (OpenCV axes) for a camera at `eye` looking at `target`, world `up`."""
+    eye = np.asarray(eye, dtype=np.float64)
+    z = np.asarray(target, dtype=np.float64) - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, np.asarray(up, dtype=np.float64))
+    if np.linalg.norm(x) < 1e-9:  # looking straight along `up`: any x works
+        x = np.cross(z, [1.0, 0.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, eye
+    return T
+
+
+def backproject(depth: np.ndarray, K: np.ndarray, c2w: np.ndarray | None = None) -> np.ndarray:
+    """Depth map [H, W] in metres -> points [H, W, 3] (camera frame, or world if c2w given)."""
+    H, W = depth.shape
+    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    z = depth.astype(np.float64)
+    pts = np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], axis=-1)
+    if c2w is not None:
+        pts = pts @ c2w[:3, :3].T + c2w[:3, 3]
+    return pts
+
+
+def project(points_world: np.ndarray, K: np.ndarray, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World points [N, 3] -> (pixel coords [N, 2] OpenCV, depth [N]) in the camera `c2w`."""
+    w2c = np.linalg.inv(c2w)
+    pc = points_world @ w2c[:3, :3].T + w2c[:3, 3]
+    z = pc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = np.stack([K[0, 0] * pc[:, 0] / z + K[0, 2], K[1, 1] * pc[:, 1] / z + K[1, 2]], axis=-1)
+    return uv, z

@@ -1,0 +1,45 @@
+#!/usr/bin/env bash
+# Create .venv/ and install everything the project needs; idempotent (a stamp of the requirement
+# files skips the install when nothing changed). Sourced by scripts/demo.sh and scripts/test.sh.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+VENV="$ROOT/.venv"
+PY="${PYTHON:-python3}"
+
+# DDS discovery stays on this machine; a random domain keeps concurrent runs apart.
+export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 100) + 1 ))}"
+export ROS_LOG_DIR="${ROS_LOG_DIR:-$ROOT/.ros_log}"
+# Models ship inside packages: never try a hub at run time.
+export HF_HUB_OFFLINE=1 TRANSFORMERS_OFFLINE=1
+
+if ! "$PY" -c 'import sys; sys.exit(sys.version_info < (3, 10))' 2>/dev/null; then
+  echo "bootstrap: need Python >= 3.10 as '$PY' (set PYTHON=/path/to/python3.11)" >&2; exit 1
+fi
+if [ ! -x "$VENV/bin/python" ]; then
+  if ! "$PY" -m venv "$VENV" 2>/dev/null; then
+    rm -rf "$VENV"
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+      echo "bootstrap: installing python3-venv with apt-get" >&2
+      apt-get update -qq && apt-get install -y -qq python3-venv >&2
+      "$PY" -m venv "$VENV"
+    else
+      echo "bootstrap: '$PY -m venv' failed; install python3-venv (sudo apt-get install python3-venv)" >&2; exit 1
+    fi
+  fi
+fi
+
+stamp_of() { cat "$ROOT"/requirements*.txt "$ROOT/setup.py" "$ROOT/scripts/bootstrap.sh" \
+  $(find "$ROOT/rg_core" -name '*.cpp' -o -name '*.h' 2>/dev/null | sort) 2>/dev/null | sha256sum | cut -d' ' -f1; }
+STAMP="$VENV/.rg_install_stamp"
+WANT="$(stamp_of)"
+if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ] || [ ! -x "$VENV/bin/rg" ]; then
+  echo "bootstrap: installing into $VENV (first run takes a few minutes)" >&2
+  "$VENV/bin/python" -m pip install -q --upgrade pip setuptools wheel >&2
+  "$VENV/bin/python" -m pip install -q -r "$ROOT/requirements.txt" -r "$ROOT/requirements-test.txt" >&2
+  "$VENV/bin/python" -m pip install -q --no-build-isolation --no-deps -e "$ROOT" >&2
+  echo "$WANT" > "$STAMP"
+else
+  echo "bootstrap: $VENV is up to date" >&2
+fi
+export PATH="$VENV/bin:$PATH"

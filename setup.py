@@ -1,0 +1,31 @@
+"""Installs the headless library `rg_core` and the ROS 2 node package `rg_ros` (ament_python)."""
+from pathlib import Path
+
+from setuptools import find_packages, setup
+
+HERE = Path(__file__).parent
+PACKAGE = "rg_ros"
+
+
+def _requirements(name: str) -> list[str]:
+    lines = (HERE / name).read_text().splitlines()
+    return [ln.strip() for ln in lines if ln.strip() and not ln.startswith("#")]
+
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    description="ReasonGrounder-ROS: open-vocabulary 3D visual grounding with hierarchical Gaussian feature splatting",
+    license="Apache-2.0",
+    python_requires=">=3.10",
+    packages=find_packages(include=["rg_core", "rg_core.*", "rg_ros", "rg_ros.*"]),
+    install_requires=_requirements("requirements.txt"),
+    extras_require={"test": _requirements("requirements-test.txt")},
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", [str(p) for p in sorted(Path("config").glob("*.yaml"))]),
+    ],
+    entry_points={"console_scripts": ["rg = rg_core.cli:main"]},
+    zip_safe=False,
+)
