@@ -29,6 +29,16 @@ if [ ! -x "$VENV/bin/python" ]; then
   fi
 fi
 
+# open3d's wheel links libusb-1.0, which minimal Debian/Ubuntu images lack.
+if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "bootstrap: installing libusb-1.0-0 (needed by open3d) with apt-get" >&2
+    apt-get update -qq >&2 && apt-get install -y -qq libusb-1.0-0 >&2
+  else
+    echo "bootstrap: open3d needs libusb-1.0 (sudo apt-get install libusb-1.0-0)" >&2
+  fi
+fi
+
 stamp_of() { cat "$ROOT"/requirements*.txt "$ROOT/setup.py" "$ROOT/scripts/bootstrap.sh" \
   $(find "$ROOT/rg_core" -name '*.cpp' -o -name '*.h' 2>/dev/null | sort) 2>/dev/null | sha256sum | cut -d' ' -f1; }
 STAMP="$VENV/.rg_install_stamp"

@@ -58,7 +58,7 @@ SHARED_OBJECTS: tuple[CatalogueEntry, ...] = (
     CatalogueEntry("orange_cup", "orange cup", "cup", _CUP),
     CatalogueEntry("mug", "coffee mug", "mug", (
         "a sturdy vessel designed for holding hot beverages",
-        "something with a handle to drink coffee or tea from",
+        "something with a handle to drink hot tea from",
         "a ceramic container for a warm drink in the morning")),
     CatalogueEntry("bowl", "bowl", "bowl", (
         "a round deep dish for soup or cereal",
@@ -132,13 +132,13 @@ PYBULLET_OBJECTS: tuple[CatalogueEntry, ...] = (
         "a plush toy a child takes to bed")),
     CatalogueEntry("objects/mug.urdf", "coffee mug", "mug", (
         "a sturdy vessel designed for holding hot beverages",
-        "something with a handle to drink coffee or tea from")),
+        "something with a handle to drink hot tea from")),
     CatalogueEntry("lego/lego.urdf", "lego brick", "lego brick", (
         "a small plastic building block with studs on top",
         "a toy piece that snaps onto others to build models"), scale=1.5),
     CatalogueEntry("jenga/jenga.urdf", "wooden block", "wooden block", (
-        "a rectangular wooden piece from a stacking tower game",
-        "a long block of wood you pull out of a tower carefully"), scale=0.8),
+        "a rectangular piece from a stacking tower game",
+        "a small plank you pull out of a tower carefully"), scale=0.8),
     CatalogueEntry("cube_small.urdf", "cube", "cube", (
         "a small box shape with six equal square faces",
         "a block with all edges the same length")),
@@ -147,5 +147,5 @@ PYBULLET_OBJECTS: tuple[CatalogueEntry, ...] = (
         "something perfectly round to throw and catch"), scale=1.5),
     CatalogueEntry("toys/concave_box.urdf", "toy box", "toy box", (
         "an open container for keeping small toys",
-        "a small box without a lid")),
+        "a small open crate without a lid")),
 )

@@ -1,0 +1,46 @@
+"""Shared fixtures: one small synthetic scene per session, and paths to the shared data."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared"
+RGBD = SHARED / "data" / "rgbd"
+
+
+def small_synth_config(**over):
+    from rg_core.config import SynthConfig
+
+    base = dict(views=16, width=160, height=120, objects=5, seed=7, workers=1)
+    base.update(over)
+    return SynthConfig(**base)
+
+
+@pytest.fixture(scope="session")
+def synth_scene_dir(tmp_path_factory) -> Path:
+    """A 16-view 160x120 scene with 5 objects (about 5 s)."""
+    from rg_core.synth.generator import default_objects_dir, generate_scene
+
+    out = tmp_path_factory.mktemp("synth") / "scene"
+    generate_scene(out, small_synth_config(), default_objects_dir(), progress=False)
+    return out
+
+
+@pytest.fixture(scope="session")
+def synth_scene(synth_scene_dir):
+    from rg_core.io.scene import read_reasoninggd
+
+    return read_reasoninggd(synth_scene_dir)
+
+
+def need_rgbd(name: str) -> Path:
+    path = RGBD / name
+    if not path.is_dir():
+        pytest.skip(f"{path} is missing (../shared/data beside the checkout)")
+    return path

@@ -1,0 +1,47 @@
+import pytest
+
+from rg_core.config import ConfigError, RGConfig, config_from_dict, config_to_dict, load_config
+
+
+def test_defaults_and_example_file_match_schema():
+    cfg = load_config("config/rg.example.yaml")
+    assert isinstance(cfg, RGConfig)
+    assert cfg.synth.ring_radius == (0.38, 0.62)
+    assert config_to_dict(cfg) == config_to_dict(RGConfig())  # the example documents the defaults
+
+
+def test_partial_override_keeps_other_defaults(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("synth:\n  views: 12\n  near: 1\n")
+    cfg = load_config(p)
+    assert cfg.synth.views == 12 and cfg.synth.near == 1.0 and isinstance(cfg.synth.near, float)
+    assert cfg.synth.width == RGConfig().synth.width
+
+
+@pytest.mark.parametrize("data, key", [
+    ({"synth": {"viewz": 3}}, "synth.viewz"),
+    ({"sinth": {}}, "sinth"),
+    ({"synth": {"views": "ten"}}, "synth.views"),
+    ({"synth": {"views": True}}, "synth.views"),
+    ({"synth": {"near": "far"}}, "synth.near"),
+    ({"synth": {"ring_radius": [0.1]}}, "synth.ring_radius"),
+    ({"synth": {"ring_radius": [0.1, "x"]}}, "synth.ring_radius[1]"),
+    ({"synth": 5}, "synth"),
+])
+def test_bad_keys_and_types_name_the_key(data, key):
+    with pytest.raises(ConfigError) as info:
+        config_from_dict(data)
+    assert str(info.value).startswith(key + ":"), str(info.value)
+
+
+def test_bad_file_errors_name_the_file(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "missing.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("synth: [unclosed\n")
+    with pytest.raises(ConfigError, match="bad.yaml: not valid YAML"):
+        load_config(bad)
+    typo = tmp_path / "typo.yaml"
+    typo.write_text("demo:\n  seeds: 1\n")
+    with pytest.raises(ConfigError, match=r"typo.yaml: demo.seeds: unknown key"):
+        load_config(typo)

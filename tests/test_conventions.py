@@ -1,0 +1,64 @@
+import numpy as np
+import pytest
+
+from rg_core.geometry import conventions as cv
+
+
+def random_pose(rng):
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    w, x, y, z = q
+    R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                  [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                  [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, rng.normal(size=3)
+    return T
+
+
+def test_round_trips():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        T = random_pose(rng)
+        np.testing.assert_allclose(cv.opencv_from_nerf(cv.nerf_from_opencv(T)), T, atol=1e-12)
+        np.testing.assert_allclose(cv.optical_from_body(cv.body_from_optical(T)), T, atol=1e-12)
+        cv.check_rigid(cv.nerf_from_opencv(T))
+        cv.check_rigid(cv.body_from_optical(T))
+    assert cv.principal_point_from_corner(*cv.principal_point_to_corner(3.25, 7.5)) == (3.25, 7.5)
+
+
+def test_axis_meanings():
+    # A NeRF camera looks down its -z; the same camera in OpenCV axes looks down +z.
+    c2w = cv.look_at([0, 0, 0], [1, 0, 0])
+    assert np.allclose(c2w[:3, 2], [1, 0, 0])           # OpenCV forward
+    assert np.allclose(c2w[:3, 1], [0, 0, -1])          # OpenCV y is down in the world
+    nerf = cv.nerf_from_opencv(c2w)
+    assert np.allclose(-nerf[:3, 2], [1, 0, 0])         # NeRF forward is -z
+    body = cv.body_from_optical(c2w)
+    assert np.allclose(body[:3, 0], [1, 0, 0])          # ROS body x forward
+    assert np.allclose(body[:3, 2], [0, 0, 1])          # ROS body z up
+
+
+def test_backproject_project_round_trip():
+    rng = np.random.default_rng(1)
+    K = cv.intrinsics_matrix(200.0, 210.0, 79.5, 59.5)
+    c2w = random_pose(rng)
+    depth = rng.uniform(0.2, 5.0, size=(120, 160))
+    pts = cv.backproject(depth, K, c2w).reshape(-1, 3)
+    uv, z = cv.project(pts, K, c2w)
+    v, u = np.mgrid[0:120, 0:160]
+    np.testing.assert_allclose(uv[:, 0], u.ravel(), atol=1e-6)
+    np.testing.assert_allclose(uv[:, 1], v.ravel(), atol=1e-6)
+    np.testing.assert_allclose(z, depth.ravel(), atol=1e-9)
+
+
+@pytest.mark.parametrize("T, msg", [
+    (np.full((4, 4), np.nan), "NaN"),
+    (np.diag([1.0, 1.0, -1.0, 1.0]), "reflection"),
+    (np.diag([2.0, 1.0, 1.0, 1.0]), "orthonormal"),
+    (np.vstack([np.eye(4)[:3], [0, 0, 1, 1]]), "last row"),
+    (np.eye(3), "4x4"),
+])
+def test_check_rigid_rejects(T, msg):
+    with pytest.raises(cv.PoseError, match=msg):
+        cv.check_rigid(T, "test pose")

@@ -1,0 +1,129 @@
+"""Synthetic generator: content, geometric consistency, determinism, fallback objects."""
+import json
+
+import numpy as np
+import pytest
+
+from conftest import need_rgbd, small_synth_config
+from rg_core.geometry.conventions import backproject
+from rg_core.geometry.reprojection import reprojection_depth_errors
+from rg_core.io.captures import read_scene
+from rg_core.synth.catalogue import PYBULLET_OBJECTS, SHARED_OBJECTS
+from rg_core.synth.generator import generate_scene
+
+
+def _pairs(frames, gap=1):
+    return [(frames[i], frames[i + gap]) for i in range(0, len(frames) - gap, 3)]
+
+
+def _errors(a, b):
+    return reprojection_depth_errors(a.load_depth(), a.intrinsics.K, a.cam_to_world,
+                                     b.load_depth(), b.intrinsics.K, b.cam_to_world)
+
+
+def test_layout_and_split(synth_scene_dir, synth_scene):
+    for sub in ("images", "depth", "mask_visible"):
+        assert len(list((synth_scene_dir / sub).glob("*.png"))) == 16
+    assert len(list((synth_scene_dir / "mask_complete").glob("*/*.png"))) == 16 * 5
+    assert all(f.index % 8 != 0 for f in synth_scene.train)
+    assert [f.index for f in synth_scene.test] == [0, 8]
+    meta = json.loads((synth_scene_dir / "transforms_train.json").read_text())
+    assert meta["depth_scale"] == 1000 and meta["frames"][0]["depth_file_path"] == "depth/0001.png"
+
+
+def test_objects_are_visible_and_distinct(synth_scene):
+    names = [o.name for o in synth_scene.objects]
+    assert len(set(o.category for o in synth_scene.objects)) == 5, names
+    seen = {o.id: 0 for o in synth_scene.objects}
+    for f in synth_scene.frames:
+        ids, counts = np.unique(f.load_visible_mask(), return_counts=True)
+        for i, c in zip(ids, counts):
+            if i:
+                seen[int(i)] += 1
+    assert all(v >= 8 for v in seen.values()), seen  # every object is seen in at least half the views
+
+
+def test_visible_inside_amodal_and_some_occlusion(synth_scene):
+    occluded_px = 0
+    for f in synth_scene.frames:
+        vis = f.load_visible_mask()
+        for o in synth_scene.objects:
+            am = f.load_complete_mask(o.id)
+            assert not np.any((vis == o.id) & ~am), (f.index, o.id)
+            occluded_px += int(np.sum(am & (vis != o.id)))
+    assert occluded_px > 0  # objects do occlude each other (amodal is more than visible)
+
+
+def test_reprojection_synthetic_within_5mm(synth_scene):
+    errs = np.concatenate([_errors(a, b) for a, b in _pairs(synth_scene.frames)])
+    assert len(errs) > 10000
+    assert np.median(errs) < 0.002 and np.mean(errs < 0.005) > 0.97, (np.median(errs), np.mean(errs < 0.005))
+
+
+def test_reprojection_detects_a_wrong_pose(synth_scene):
+    a, b = synth_scene.frames[1], synth_scene.frames[2]
+    c2w = b.cam_to_world.copy()
+    c2w[:3, 3] += [0.0, 0.0, 0.02]  # 2 cm off
+    e = reprojection_depth_errors(a.load_depth(), a.intrinsics.K, a.cam_to_world,
+                                  b.load_depth(), b.intrinsics.K, c2w)
+    assert np.mean(e < 0.005) < 0.5
+
+
+def test_reprojection_box_toys_within_2cm():
+    s = read_scene(need_rgbd("box_toys_50"))
+    errs = np.concatenate([_errors(a, b) for a, b in _pairs(s.frames[:20])])
+    assert np.median(errs) < 0.005 and np.mean(errs < 0.02) > 0.95, (np.median(errs), np.mean(errs < 0.02))
+
+
+def test_aabb_contains_object_points(synth_scene):
+    objs = {o.id: o for o in synth_scene.objects}
+    for f in synth_scene.frames[::4]:
+        pts = backproject(f.load_depth(), f.intrinsics.K, f.cam_to_world)
+        vis = f.load_visible_mask()
+        for oid, o in objs.items():
+            p = pts[vis == oid]
+            if len(p) < 20:
+                continue
+            lo, hi = np.array(o.aabb_min) - 0.004, np.array(o.aabb_max) + 0.004
+            inside = np.all((p >= lo) & (p <= hi), axis=1)
+            assert inside.mean() > 0.97, (f.index, o.name, inside.mean())
+
+
+def test_queries_describe_without_naming():
+    for e in SHARED_OBJECTS + PYBULLET_OBJECTS:
+        assert len(e.implicit) >= 2, e.name
+        for text in e.implicit:
+            for word in e.name.split():
+                assert word.lower() not in text.lower().split(), (e.name, text)
+
+
+def test_same_seed_same_bytes_and_other_seed_differs(tmp_path):
+    cfg = small_synth_config(views=6, width=64, height=48, objects=3, seed=11)
+    from rg_core.synth.generator import default_objects_dir
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    generate_scene(a, cfg, default_objects_dir(), progress=False)
+    generate_scene(b, cfg.__class__(**{**cfg.__dict__, "workers": 2}), default_objects_dir(), progress=False)
+    files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file())
+    for rel in files:
+        assert (a / rel).read_bytes() == (b / rel).read_bytes(), rel
+    c = tmp_path / "c"
+    generate_scene(c, cfg.__class__(**{**cfg.__dict__, "seed": 12}), default_objects_dir(), progress=False)
+    assert (a / "synth.json").read_bytes() != (c / "synth.json").read_bytes()
+
+
+def test_fallback_without_shared_objects(tmp_path):
+    out = tmp_path / "fb"
+    summary = generate_scene(out, small_synth_config(views=4, width=64, height=48, objects=3, seed=1),
+                             objects_dir=tmp_path / "does_not_exist", progress=False)
+    assert summary["objects_source"] == "pybullet_data"
+    s = read_scene(out)
+    names = {e.name for e in PYBULLET_OBJECTS}
+    assert all(o.name in names for o in s.objects)
+    assert any(np.any(f.load_visible_mask() > 0) for f in s.frames)
+
+
+def test_bad_generator_arguments(tmp_path):
+    with pytest.raises(ValueError, match="views >= 1"):
+        generate_scene(tmp_path / "x", small_synth_config(views=0), None, progress=False)
