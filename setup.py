@@ -2,6 +2,7 @@
 from pathlib import Path
 
 from setuptools import find_packages, setup
+from torch.utils.cpp_extension import BuildExtension, CppExtension
 
 HERE = Path(__file__).parent
 PACKAGE = "rg_ros"
@@ -26,6 +27,11 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", [str(p) for p in sorted(Path("config").glob("*.yaml"))]),
     ],
+    # The fast CPU rasterizer; torch must be installed first (pip --no-build-isolation).
+    ext_modules=[CppExtension(
+        "rg_core.render._rasterize_cpu", ["rg_core/render/csrc/rasterize_cpu.cpp"],
+        extra_compile_args=["-O3", "-fopenmp", "-fno-math-errno"], extra_link_args=["-fopenmp"])],
+    cmdclass={"build_ext": BuildExtension.with_options(use_ninja=False)},
     entry_points={"console_scripts": ["rg = rg_core.cli:main"]},
     zip_safe=False,
 )

@@ -1,0 +1,56 @@
+"""Fast CPU path: the C++/OpenMP kernel (built at install time) behind a torch autograd Function."""
+from __future__ import annotations
+
+import torch
+
+from .projection import Projected
+
+try:  # built by `pip install -e .` (setup.py); absent in a plain source checkout
+    from . import _rasterize_cpu as _ext
+except ImportError as exc:  # pragma: no cover - depends on the install
+    _ext = None
+    _IMPORT_ERROR = exc
+
+
+def available() -> bool:
+    return _ext is not None
+
+
+def _require():
+    if _ext is None:
+        raise RuntimeError(
+            "rg_core.render._rasterize_cpu is not built: run `bash scripts/bootstrap.sh` or "
+            f"`pip install --no-build-isolation -e .` (import error: {_IMPORT_ERROR})")
+    return _ext
+
+
+class _RasterizeCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, radii, depths, width, height, tile):
+        ext = _require()
+        out, t_final, n_contrib, max_id, offsets, gids = ext.rasterize_forward(
+            means2d, conics, opacities, colors, radii, depths, width, height, tile)
+        ctx.save_for_backward(means2d, conics, opacities, colors, offsets, gids, t_final, n_contrib)
+        ctx.dims = (width, height, tile)
+        ctx.mark_non_differentiable(max_id)
+        return out, 1.0 - t_final, max_id
+
+    @staticmethod
+    def backward(ctx, grad_out, grad_alpha, _grad_ids):
+        means2d, conics, opacities, colors, offsets, gids, t_final, n_contrib = ctx.saved_tensors
+        width, height, tile = ctx.dims
+        if grad_out is None:
+            grad_out = torch.zeros(height, width, colors.shape[1])
+        if grad_alpha is None:
+            grad_alpha = torch.zeros(height, width)
+        g_m, g_c, g_o, g_col = _require().rasterize_backward(
+            means2d, conics, opacities, colors, offsets, gids, t_final, n_contrib,
+            grad_out.float(), grad_alpha.float(), width, height, tile)
+        return g_m, g_c, g_o, g_col, None, None, None, None, None
+
+
+def rasterize_fast(proj: Projected, channels: torch.Tensor, width: int, height: int, tile: int = 16):
+    """-> (colour [H, W, C], alpha [H, W], ids [H, W] int64), same contract as the reference."""
+    out, alpha, ids = _RasterizeCPU.apply(proj.means2d, proj.conics, proj.opacities, channels.float(),
+                                          proj.radii, proj.depths.detach(), width, height, tile)
+    return out, alpha, ids.long()

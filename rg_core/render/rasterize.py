@@ -1,0 +1,108 @@
+"""`rasterize()`: the one public rendering function (3DGS equations) with three backends.
+
+- "reference": pure torch, tile by tile, autograd (slow; the ground truth in tests),
+- "cpu": the C++/OpenMP kernel with its own backward pass (default on CPU),
+- "gsplat": gsplat's CUDA `rasterization` for CUDA tensors (optional dependency).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import torch
+
+from . import fast_cpu
+from .camera import Camera
+from .projection import Projected, project_gaussians
+from .reference import rasterize_reference
+
+log = logging.getLogger(__name__)
+
+BACKENDS = ("auto", "cpu", "reference", "gsplat")
+
+
+@dataclass
+class RenderOutput:
+    """Per-pixel results. `depth` is the expected depth (alpha-normalised); 0 where alpha ~ 0."""
+
+    channels: torch.Tensor        # [H, W, C]
+    depth: torch.Tensor           # [H, W]
+    alpha: torch.Tensor           # [H, W] accumulated opacity in [0, 1]
+    ids: torch.Tensor | None      # [H, W] int64, Gaussian with the largest blending weight, -1 none
+    projected: Projected | None   # screen-space Gaussians (None for the gsplat backend)
+
+
+def _select(subset: torch.Tensor | None, n: int) -> torch.Tensor | None:
+    """Boolean mask [N] or index list -> sorted unique int64 indices (None: all)."""
+    if subset is None:
+        return None
+    subset = torch.as_tensor(subset)
+    if subset.dtype == torch.bool:
+        if subset.shape != (n,):
+            raise ValueError(f"rasterize: boolean subset must have shape [{n}], got {list(subset.shape)}")
+        return torch.nonzero(subset).squeeze(1)
+    idx = subset.reshape(-1).long()
+    if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= n):
+        raise ValueError(f"rasterize: subset indices must lie in [0, {n}), got [{int(idx.min())}, {int(idx.max())}]")
+    return torch.unique(idx)
+
+
+def rasterize(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor, opacities: torch.Tensor,
+              channels: torch.Tensor, camera: Camera, *, subset: torch.Tensor | None = None,
+              background: torch.Tensor | None = None, return_ids: bool = False, backend: str = "auto",
+              tile: int = 16, eps2d: float = 0.3) -> RenderOutput:
+    """Render Gaussians into `camera` with front-to-back alpha compositing.
+
+    means [N, 3] (world, m), scales [N, 3] (std devs, m), quats [N, 4] (w, x, y, z; any norm),
+    opacities [N] in [0, 1], channels [N, C] (any features: RGB, latent, instance ...). `subset`
+    (bool [N] or indices) renders only those Gaussians; `ids` then still index the full set.
+    Gradients flow to means, scales, quats, opacities and channels.
+    """
+    N = means.shape[0]
+    if means.ndim != 2 or means.shape[1] != 3:
+        raise ValueError(f"rasterize: means must be [N, 3], got {list(means.shape)}")
+    for name, t, shape in (("scales", scales, (N, 3)), ("quats", quats, (N, 4)), ("opacities", opacities, (N,))):
+        if tuple(t.shape) != shape:
+            raise ValueError(f"rasterize: {name} must be {list(shape)}, got {list(t.shape)}")
+    if channels.ndim != 2 or channels.shape[0] != N:
+        raise ValueError(f"rasterize: channels must be [N={N}, C], got {list(channels.shape)}")
+    if backend not in BACKENDS:
+        raise ValueError(f"rasterize: backend must be one of {BACKENDS}, got {backend!r}")
+    C = channels.shape[1]
+    if background is not None and tuple(background.shape) != (C,):
+        raise ValueError(f"rasterize: background must be [{C}], got {list(background.shape)}")
+
+    idx = _select(subset, N)
+    if idx is not None:
+        means, scales, quats, opacities, channels = (t[idx] for t in (means, scales, quats, opacities, channels))
+
+    if backend == "auto":
+        backend = "gsplat" if means.is_cuda else ("cpu" if fast_cpu.available() else "reference")
+        if backend == "reference":
+            log.warning("fast CPU rasterizer not built; using the slow pure-torch reference")
+    if backend == "gsplat":
+        from .gsplat_backend import rasterize_gsplat
+
+        out = rasterize_gsplat(means, scales, quats, opacities, channels, camera, background, eps2d)
+        if idx is not None and out.ids is not None:
+            out.ids = torch.where(out.ids >= 0, idx.to(out.ids.device)[out.ids.clamp(min=0)], out.ids)
+        return out
+
+    proj = project_gaussians(means, scales, quats, opacities, camera, eps2d)
+    W, H = camera.width, camera.height
+    # Depth is composited as one more channel, then normalised by alpha: the expected depth.
+    ch = torch.cat([channels.float(), proj.depths[:, None]], 1)
+    if backend == "cpu":
+        out, alpha, ids = fast_cpu.rasterize_fast(proj, ch, W, H, tile)
+    else:
+        out, alpha, ids = rasterize_reference(proj, ch, W, H, tile, return_ids=return_ids)
+    color, depth_sum = out[..., :C], out[..., C]
+    # Where almost nothing was hit, the normalised depth is meaningless (and 0/0): report 0.
+    covered = alpha > 1e-6
+    depth = torch.where(covered, depth_sum / torch.where(covered, alpha, torch.ones_like(alpha)),
+                        torch.zeros_like(alpha))
+    if background is not None:
+        color = color + (1.0 - alpha)[..., None] * background.to(color)
+    if return_ids and ids is not None and idx is not None:
+        ids = torch.where(ids >= 0, idx[ids.clamp(min=0)], ids)
+    return RenderOutput(color, depth, alpha, ids if return_ids else None, proj)
