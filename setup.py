@@ -29,7 +29,7 @@ setup(
     ],
     # The fast CPU rasterizer; torch must be installed first (pip --no-build-isolation).
     ext_modules=[CppExtension(
-        "rg_core.render._rasterize_cpu", ["rg_core/render/csrc/rasterize_cpu.cpp"],
+        "rg_core.render._rasterize_cpu", ["rg_core/render/csrc/rasterize_cpu.cpp", "rg_core/render/csrc/project_cpu.cpp"],
         extra_compile_args=["-O3", "-fopenmp", "-fno-math-errno"], extra_link_args=["-fopenmp"])],
     cmdclass={"build_ext": BuildExtension.with_options(use_ninja=False)},
     entry_points={"console_scripts": ["rg = rg_core.cli:main"]},

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import torch
 
+from .camera import Camera
 from .projection import Projected
 
 try:  # built by `pip install -e .` (setup.py); absent in a plain source checkout
@@ -10,6 +11,10 @@ try:  # built by `pip install -e .` (setup.py); absent in a plain source checkou
 except ImportError as exc:  # pragma: no cover - depends on the install
     _ext = None
     _IMPORT_ERROR = exc
+
+
+# Tests set this: outputs start as NaN inside the kernel, so any element it forgets to write shows.
+POISON = False
 
 
 def available() -> bool:
@@ -29,7 +34,7 @@ class _RasterizeCPU(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, colors, radii, depths, width, height, tile):
         ext = _require()
         out, t_final, n_contrib, max_id, offsets, gids = ext.rasterize_forward(
-            means2d, conics, opacities, colors, radii, depths, width, height, tile)
+            means2d, conics, opacities, colors, radii, depths, width, height, tile, POISON)
         ctx.save_for_backward(means2d, conics, opacities, colors, offsets, gids, t_final, n_contrib)
         ctx.dims = (width, height, tile)
         ctx.mark_non_differentiable(max_id)
@@ -45,8 +50,35 @@ class _RasterizeCPU(torch.autograd.Function):
             grad_alpha = torch.zeros(height, width)
         g_m, g_c, g_o, g_col = _require().rasterize_backward(
             means2d, conics, opacities, colors, offsets, gids, t_final, n_contrib,
-            grad_out.float(), grad_alpha.float(), width, height, tile)
+            grad_out.float(), grad_alpha.float(), width, height, tile, POISON)
         return g_m, g_c, g_o, g_col, None, None, None, None, None
+
+
+class _ProjectCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, scales, quats, opacities, camera: Camera, eps2d: float):
+        dims = (camera.world_to_cam, camera.K, camera.width, camera.height, camera.near, camera.far, eps2d)
+        means2d, conics, depths, opac, radii = _require().project_forward(means, scales, quats, opacities, *dims)
+        ctx.save_for_backward(means, scales, quats, opacities)
+        ctx.dims = dims
+        ctx.mark_non_differentiable(radii)
+        return means2d, conics, depths, opac, radii
+
+    @staticmethod
+    def backward(ctx, g_means2d, g_conics, g_depths, g_opac, _g_radii):
+        means, scales, quats, opacities = ctx.saved_tensors
+        zeros = lambda t, shape: torch.zeros(shape) if t is None else t  # noqa: E731
+        n = means.shape[0]
+        gm, gs, gq, go = _require().project_backward(
+            means, scales, quats, opacities, *ctx.dims, zeros(g_means2d, (n, 2)), zeros(g_conics, (n, 3)),
+            zeros(g_depths, (n,)), zeros(g_opac, (n,)))
+        return gm, gs, gq, go, None, None
+
+
+def project_fast(means, scales, quats, opacities, camera: Camera, eps2d: float = 0.3) -> Projected:
+    """C++ twin of projection.project_gaussians (same outputs and gradients)."""
+    m2, cn, d, o, r = _ProjectCPU.apply(means.float(), scales.float(), quats.float(), opacities.float(), camera, eps2d)
+    return Projected(means2d=m2, conics=cn, depths=d, opacities=o, radii=r)
 
 
 def rasterize_fast(proj: Projected, channels: torch.Tensor, width: int, height: int, tile: int = 16):

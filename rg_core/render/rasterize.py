@@ -88,7 +88,10 @@ def rasterize(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor, op
             out.ids = torch.where(out.ids >= 0, idx.to(out.ids.device)[out.ids.clamp(min=0)], out.ids)
         return out
 
-    proj = project_gaussians(means, scales, quats, opacities, camera, eps2d)
+    if backend == "cpu":
+        proj = fast_cpu.project_fast(means, scales, quats, opacities, camera, eps2d)
+    else:
+        proj = project_gaussians(means, scales, quats, opacities, camera, eps2d)
     W, H = camera.width, camera.height
     # Depth is composited as one more channel, then normalised by alpha: the expected depth.
     ch = torch.cat([channels.float(), proj.depths[:, None]], 1)

@@ -98,4 +98,9 @@ def rasterize_reference(proj: Projected, channels: torch.Tensor, width: int, hei
         xx = torch.cat([r[1] for r in rows])
         out = out.index_put((yy, xx), torch.cat([c[0] for c in cols]))
         t_img = t_img.index_put((yy, xx), torch.cat([c[1] for c in cols]))
+    else:
+        # Nothing visible: keep the outputs connected to the inputs (zero gradients, no autograd
+        # error in a training loop). Empty sums are exactly 0, even for inf/NaN inputs.
+        out = out + channels[:0].sum()
+        t_img = t_img + proj.opacities[:0].sum()
     return out, 1.0 - t_img, ids_img

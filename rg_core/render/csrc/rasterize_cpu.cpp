@@ -82,14 +82,18 @@ Binning bin_tiles(const float* means2d, const int32_t* radii, const float* depth
 
 // Per-Gaussian data of one tile, gathered contiguously (the CPU analogue of shared memory).
 struct TileData {
-  std::vector<float> u, v, a, b, c, o;
+  std::vector<float> u, v, a, b, c, o, thr;
   void load(const int32_t* ids, int64_t k, const float* means2d, const float* conics, const float* opac) {
-    u.resize(k); v.resize(k); a.resize(k); b.resize(k); c.resize(k); o.resize(k);
+    u.resize(k); v.resize(k); a.resize(k); b.resize(k); c.resize(k); o.resize(k); thr.resize(k);
     for (int64_t j = 0; j < k; ++j) {
       const int32_t g = ids[j];
       u[j] = means2d[2 * g]; v[j] = means2d[2 * g + 1];
       a[j] = conics[3 * g]; b[j] = conics[3 * g + 1]; c[j] = conics[3 * g + 2];
       o[j] = opac[g];
+      // Below this power, alpha = o exp(power) < 1/255 for sure: skip without calling exp. The
+      // 1e-4 margin (relative, far above exp's rounding) keeps the exact test for borderline cases,
+      // so the result is the same as the reference's.
+      thr[j] = std::log(kAlphaMin / std::max(o[j], kAlphaMin)) - 1e-4f;
     }
   }
 };
@@ -101,7 +105,7 @@ struct TileData {
 std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tensor conics,
                                              torch::Tensor opacities, torch::Tensor colors,
                                              torch::Tensor radii, torch::Tensor depths, int64_t width,
-                                             int64_t height, int64_t tile) {
+                                             int64_t height, int64_t tile, bool poison) {
   TORCH_CHECK(means2d.dtype() == torch::kFloat32 && conics.dtype() == torch::kFloat32 &&
                   opacities.dtype() == torch::kFloat32 && colors.dtype() == torch::kFloat32 &&
                   depths.dtype() == torch::kFloat32 && radii.dtype() == torch::kInt32,
@@ -115,10 +119,15 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
                            H, TS);
   const int64_t n_tiles = int64_t(bins.offsets.size()) - 1;
 
-  auto out = torch::zeros({H, W, C}, colors.options());
-  auto t_final = torch::ones({H, W}, colors.options());
-  auto n_contrib = torch::zeros({H, W}, radii.options());
-  auto max_id = torch::full({H, W}, -1, radii.options());
+  // Outputs start uninitialised (NaN / garbage ids when `poison`, for tests): every element is
+  // written below, empty tiles included.
+  auto out = torch::empty({H, W, C}, colors.options());
+  auto t_final = torch::empty({H, W}, colors.options());
+  auto n_contrib = torch::empty({H, W}, radii.options());
+  auto max_id = torch::empty({H, W}, radii.options());
+  if (poison) {
+    out.fill_(NAN); t_final.fill_(NAN); n_contrib.fill_(-7); max_id.fill_(-7);
+  }
   const float* m2 = means2d.data_ptr<float>();
   const float* cn = conics.data_ptr<float>();
   const float* op = opacities.data_ptr<float>();
@@ -134,7 +143,6 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
 #pragma omp for schedule(dynamic, 1)
     for (int64_t t = 0; t < n_tiles; ++t) {
       const int64_t s = bins.offsets[t], k = bins.offsets[t + 1] - s;
-      if (k == 0) continue;
       const int32_t* ids = bins.gids.data() + s;
       td.load(ids, k, m2, cn, op);
       const int ty = int(t / tiles_x), tx = int(t % tiles_x);
@@ -144,10 +152,11 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
           float T = 1.0f, best_w = 0.0f;
           int32_t best = -1, last = 0;
           float* o_pix = out_p + (int64_t(py) * W + px) * C;
+          std::fill(o_pix, o_pix + C, 0.0f);
           for (int64_t j = 0; j < k; ++j) {
             const float dx = td.u[j] - fx, dy = td.v[j] - fy;
             const float power = -0.5f * (td.a[j] * dx * dx + td.c[j] * dy * dy) - td.b[j] * dx * dy;
-            if (power > 0.0f) continue;
+            if (power > 0.0f || power < td.thr[j]) continue;
             const float alpha = std::min(kAlphaMax, td.o[j] * std::exp(power));
             if (alpha < kAlphaMin) continue;
             const float next_T = T * (1.0f - alpha);
@@ -178,7 +187,7 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tens
                                               torch::Tensor offsets, torch::Tensor gids,
                                               torch::Tensor t_final, torch::Tensor n_contrib,
                                               torch::Tensor grad_out, torch::Tensor grad_alpha,
-                                              int64_t width, int64_t height, int64_t tile) {
+                                              int64_t width, int64_t height, int64_t tile, bool poison) {
   means2d = means2d.contiguous(); conics = conics.contiguous(); opacities = opacities.contiguous();
   colors = colors.contiguous(); grad_out = grad_out.contiguous(); grad_alpha = grad_alpha.contiguous();
   const int64_t n = means2d.size(0), C = colors.size(1);
@@ -227,7 +236,7 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tens
           for (int64_t j = int64_t(nc[pix]) - 1; j >= 0; --j) {
             const float dx = td.u[j] - fx, dy = td.v[j] - fy;
             const float power = -0.5f * (td.a[j] * dx * dx + td.c[j] * dy * dy) - td.b[j] * dx * dy;
-            if (power > 0.0f) continue;
+            if (power > 0.0f || power < td.thr[j]) continue;
             const float vis = std::exp(power);
             const float raw = td.o[j] * vis;
             const float alpha = std::min(kAlphaMax, raw);
@@ -257,19 +266,36 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tens
       }
     }
   }
-  auto total = torch::zeros({n, stride}, colors.options());
+  auto total = torch::empty({n, stride}, colors.options());
+  if (poison) total.fill_(NAN);
   float* tp = total.data_ptr<float>();
+  bool first = true;
   for (int i = 0; i < nt; ++i) {
-    if (bufs[i].empty()) continue;
+    if (bufs[i].size() != size_t(n * stride)) continue;  // a thread the runtime did not start
     const float* b = bufs[i].data();
+    const bool assign = first;
 #pragma omp parallel for schedule(static)
-    for (int64_t e = 0; e < n * stride; ++e) tp[e] += b[e];
+    for (int64_t e = 0; e < n * stride; ++e) tp[e] = assign ? b[e] : tp[e] + b[e];
+    first = false;
   }
+  if (first) total.zero_();
   return {total.slice(1, 0, 2).contiguous(), total.slice(1, 2, 5).contiguous(), total.select(1, 5).contiguous(),
           total.slice(1, 6, stride).contiguous()};
 }
 
+// project_cpu.cpp
+std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
+                                           torch::Tensor opacities, torch::Tensor w2c, torch::Tensor K,
+                                           int64_t width, int64_t height, double near, double far, double eps2d);
+std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
+                                            torch::Tensor opacities, torch::Tensor w2c, torch::Tensor K,
+                                            int64_t width, int64_t height, double near, double far, double eps2d,
+                                            torch::Tensor g_means2d, torch::Tensor g_conics, torch::Tensor g_depths,
+                                            torch::Tensor g_opac);
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("project_forward", &project_forward, "EWA projection forward (CPU)");
+  m.def("project_backward", &project_backward, "EWA projection backward (CPU)");
   m.def("rasterize_forward", &rasterize_forward, "Gaussian rasterization forward (CPU)");
   m.def("rasterize_backward", &rasterize_backward, "Gaussian rasterization backward (CPU)");
 }
