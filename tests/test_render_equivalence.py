@@ -132,18 +132,16 @@ def test_projection_matches_gsplat_torch_reference():
     covars = covariance_3d(scales.double(), quats.double())
     radii, means2d, depths, conics, _ = gs._fully_fused_projection(
         means.double(), covars, w2c.double()[None], K[None], 64, 48, eps2d=0.3, near_plane=0.2, far_plane=8.0)
-    theirs_valid = radii[0] > 0
+    theirs_valid = (radii[0] > 0).reshape(len(means), -1).all(-1)  # gsplat >= 1.5: per-axis radii
     ours_valid = ours.radii > 0
     both = ours_valid & theirs_valid
     assert both.sum() > 500
     torch.testing.assert_close(ours.means2d[both].double(), means2d[0][both] - 0.5, atol=1e-3, rtol=1e-5)
     torch.testing.assert_close(ours.conics[both].double(), conics[0][both], atol=1e-6, rtol=1e-4)
     torch.testing.assert_close(ours.depths[both].double(), depths[0][both], atol=1e-5, rtol=1e-6)
-    # Our footprint is opacity-aware (tighter for faint Gaussians): never valid where gsplat culls
-    # for depth or determinant reasons.
-    assert not bool((ours_valid & ~theirs_valid & (depths[0] > 0.2) & (depths[0] < 8.0) & (radii[0] == 0)
-                     & ((means2d[0][:, 0] > 0) & (means2d[0][:, 0] < 64) & (means2d[0][:, 1] > 0)
-                        & (means2d[0][:, 1] < 48))).any())
+    # What gsplat culls for depth, we cull too (our footprint differs: opacity-aware, not 3.33 sigma).
+    outside = (depths[0] < 0.2) | (depths[0] > 8.0)
+    assert outside.sum() > 100 and not bool((ours_valid & outside).any())
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU and gsplat")

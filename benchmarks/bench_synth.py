@@ -1,0 +1,48 @@
+"""`rg synth` speed: 100 views, 320x240, 7 objects, with 1 and 2 render workers in one run.
+
+    python benchmarks/bench_synth.py [--views 100] [--json]
+
+The 1-worker run is the baseline; the ratio is the parallel speed-up. Target: under 60 s on the
+2-core machine.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from rg_core.config import SynthConfig  # noqa: E402
+from rg_core.synth.generator import default_objects_dir, generate_scene  # noqa: E402
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--views", type=int, default=100)
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+    res = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for workers in (1, 2):
+            cfg = SynthConfig(views=args.views, width=320, height=240, objects=7, seed=0, workers=workers)
+            t = time.perf_counter()
+            generate_scene(Path(tmp) / f"w{workers}", cfg, default_objects_dir(), progress=False)
+            res[f"seconds_{workers}_worker"] = round(time.perf_counter() - t, 2)
+            print(f"{args.views} views 320x240, 7 objects, {workers} worker(s): {res[f'seconds_{workers}_worker']} s",
+                  file=sys.stderr)
+        a = (Path(tmp) / "w1").rglob("*")
+        same = all(p.read_bytes() == (Path(tmp) / "w2" / p.relative_to(Path(tmp) / "w1")).read_bytes()
+                   for p in a if p.is_file())
+    res["speedup_2_workers"] = round(res["seconds_1_worker"] / res["seconds_2_worker"], 2)
+    res["identical_output"] = same
+    print(f"speed-up with 2 workers: x{res['speedup_2_workers']}, identical output: {same}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(res))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
