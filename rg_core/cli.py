@@ -85,6 +85,18 @@ def cmd_demo(args, cfg) -> dict:
             "seconds": {"synth": round(t1 - t0, 3), "contact_sheet": round(t2 - t1, 3)}}
 
 
+def cmd_map(args, cfg) -> dict:
+    from .map.run import map_scene
+    from .map.store import save_map
+
+    over = {k: v for k, v in (("max_gaussians", args.max_gaussians), ("iters_per_keyframe", args.iters_per_keyframe),
+                              ("width", args.width)) if v is not None}
+    mcfg = dataclasses.replace(cfg.map, **over)
+    mapper, report = map_scene(args.scene, mcfg, progress=not args.quiet)
+    report["map"] = str(save_map(mapper, args.out))
+    return report
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rg", description="ReasonGrounder: 3D visual grounding, headless.")
     parser.add_argument("--config", help="YAML configuration file (see config/rg.example.yaml)")
@@ -104,6 +116,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=_positive, help="render processes")
     common(p)
     p.set_defaults(func=cmd_synth)
+
+    p = sub.add_parser("map", help="build a Gaussian map from a scene's training frames, evaluate on test views")
+    p.add_argument("scene", help="ReasoningGD scene folder or real capture folder")
+    p.add_argument("--out", required=True, help="map file to write (e.g. scene.rgmap)")
+    p.add_argument("--max-gaussians", type=_positive)
+    p.add_argument("--iters-per-keyframe", type=int)
+    p.add_argument("--width", type=_positive, help="working image width")
+    common(p)
+    p.set_defaults(func=cmd_map)
 
     p = sub.add_parser("demo", help="the main job on an embedded default scene")
     p.add_argument("--out", default="rg_demo", help="output folder (default: ./rg_demo)")

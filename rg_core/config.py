@@ -37,8 +37,8 @@ class SynthConfig:
     """Vertical field of view of the pinhole camera."""
     near: float = 0.02
     """Renderer near plane (m)."""
-    far: float = 6.0
-    """Renderer far plane (m); depth beyond it is stored as invalid (0)."""
+    far: float = 20.0
+    """Renderer far plane (m); depth beyond it (the sky) is stored as invalid (0)."""
     test_every: int = 8
     """Every n-th view (index % n == 0) goes to transforms_test.json."""
     ring_radius: tuple[float, float] = (0.38, 0.62)
@@ -69,11 +69,61 @@ class DemoConfig:
 
 
 @dataclass
+class MapConfig:
+    """Incremental Gaussian mapping (`rg map`, the node's map)."""
+
+    width: int = 320
+    """Working image width: frames are resized to it (aspect kept) for mapping."""
+    iters_per_keyframe: int = 10
+    """Optimisation iterations after each keyframe (the run-time budget; see bench_mapping.py)."""
+    window: int = 8
+    """Recent keyframes optimised together (older ones are revisited at random too)."""
+    max_gaussians: int = 300000
+    """Memory bound: seeds beyond it are dropped and reported."""
+    seed_stride: int = 2
+    """One new Gaussian per stride x stride block of unexplained pixels."""
+    seed_scale: float = 0.6
+    """New scale = seed_scale x stride x depth / focal length (the local point spacing)."""
+    init_opacity: float = 0.9
+    """Opacity of new Gaussians."""
+    kf_new_fraction: float = 0.04
+    """A frame is a keyframe if more than this fraction of its valid depth is unexplained ..."""
+    kf_photo_error: float = 0.09
+    """... or if the map renders its explained pixels with a mean L1 colour error above this."""
+    unexplained_alpha: float = 0.5
+    """Pixels the map covers with less accumulated alpha are unexplained."""
+    depth_error_abs: float = 0.03
+    """Pixels whose rendered depth is off by more than max(abs, rel x depth) are unexplained (m)."""
+    depth_error_rel: float = 0.03
+    lambda_depth: float = 0.5
+    """Weight of the depth L1 (m) against the colour L1."""
+    lambda_alpha: float = 0.1
+    """Weight of (1 - alpha) on valid depth pixels: surfaces become opaque."""
+    lambda_opacity: float = 0.0
+    """Optional opacity regularisation (mean opacity)."""
+    lr_means: float = 0.0005
+    lr_scales: float = 0.005
+    lr_quats: float = 0.002
+    lr_opacity: float = 0.05
+    lr_colors: float = 0.01
+    prune_opacity: float = 0.02
+    """Gaussians less opaque than this are removed."""
+    prune_scale: float = 0.25
+    """Gaussians with a std dev above this (m) are removed."""
+    near: float = 0.05
+    """Render clip planes of the map (m)."""
+    far: float = 30.0
+    seed: int = 0
+    """Random seed of keyframe sampling and seed subsampling."""
+
+
+@dataclass
 class RGConfig:
     """Top level of a ReasonGrounder configuration file."""
 
     synth: SynthConfig = field(default_factory=SynthConfig)
     demo: DemoConfig = field(default_factory=DemoConfig)
+    map: MapConfig = field(default_factory=MapConfig)
 
 
 def _type_name(tp: Any) -> str:

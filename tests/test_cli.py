@@ -39,3 +39,18 @@ def test_errors_are_reported(tmp_path):
     assert "synth.view: unknown key" in json.loads(r.stdout)["error"]
     r = run_rg("synth", str(tmp_path / "s"), "--size", "64by48")
     assert r.returncode == 2 and "size must look like 320x240" in r.stderr
+
+
+def test_map_json_reports_everything(synth_scene_dir, tmp_path):
+    r = run_rg("map", str(synth_scene_dir), "--out", str(tmp_path / "m.rgmap"), "--width", "80",
+               "--iters-per-keyframe", "2", "--max-gaussians", "5000", "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["frames"] == 14 and 1 <= out["keyframes"] <= 14 and 0 < out["gaussians"] <= 5000
+    assert set(out["seconds"]) >= {"prepare", "check", "seed", "optimise", "prune"} and out["seconds_total"] > 0
+    assert out["peak_rss_mb"] > 0 and out["test"]["views"] == 2
+    for k in ("psnr", "depth_abs_error_median_m", "coverage"):
+        assert k in out["test"]
+    assert (tmp_path / "m.rgmap").is_file()
+    r = run_rg("map", str(tmp_path / "nowhere"), "--out", str(tmp_path / "x.rgmap"), "--json")
+    assert r.returncode == 2 and "nowhere: not a scene folder" in json.loads(r.stdout)["error"]

@@ -27,6 +27,7 @@ from ..geometry.conventions import (
     opencv_from_nerf,
     principal_point_from_corner,
     principal_point_to_corner,
+    scale_intrinsics,
 )
 from .images import SceneError, check_depth_unit, read_depth, read_mask, read_rgb
 
@@ -48,10 +49,8 @@ class Intrinsics:
 
     def scaled(self, width: int, height: int) -> "Intrinsics":
         """The same camera resampled to another image size."""
-        sx, sy = width / self.width, height / self.height
-        return Intrinsics(
-            self.fx * sx, self.fy * sy, (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5, width, height
-        )
+        K = scale_intrinsics(self.K, width / self.width, height / self.height)
+        return Intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height)
 
 
 @dataclass

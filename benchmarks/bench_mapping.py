@@ -1,0 +1,102 @@
+"""Mapping: error against run time on a synthetic scene, second-pass growth, and a real capture.
+
+    python benchmarks/bench_mapping.py [--scene DIR] [--budgets 5 10 20 40] [--out DIR] [--json]
+
+Without --scene it generates the `rg synth` default (100 views, 320x240, 7 objects, seed 0).
+Writes OUT/mapping_error_vs_time.png and prints one line per run (JSON with --json).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from rg_core.config import MapConfig, SynthConfig  # noqa: E402
+from rg_core.io.captures import read_scene  # noqa: E402
+from rg_core.map.mapper import Mapper  # noqa: E402
+from rg_core.map.run import map_scene, stream_frames  # noqa: E402
+from rg_core.synth.generator import default_objects_dir, generate_scene  # noqa: E402
+
+
+def plot(rows: list[dict], default_budget: int, out_png: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    secs = [r["seconds_total"] for r in rows]
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.4))
+    ax[0].plot(secs, [r["test"]["psnr"] for r in rows], "o-", label="whole image")
+    ax[0].plot(secs, [r["test"]["psnr_valid_depth"] for r in rows], "s--", label="valid-depth pixels")
+    ax[0].set_xlabel("mapping time (s)")
+    ax[0].set_ylabel("test-view PSNR (dB)")
+    ax[1].plot(secs, [1000 * r["test"]["depth_abs_error_median_m"] for r in rows], "o-")
+    ax[1].set_xlabel("mapping time (s)")
+    ax[1].set_ylabel("median |depth error| (mm)")
+    for r, s in zip(rows, secs):
+        for a, y in ((ax[0], r["test"]["psnr"]), (ax[1], 1000 * r["test"]["depth_abs_error_median_m"])):
+            a.annotate(f"{r['iters_per_keyframe']} it" + (" (default)" if r["iters_per_keyframe"] == default_budget else ""),
+                       (s, y), textcoords="offset points", xytext=(4, 4), fontsize=7)
+    ax[0].legend(fontsize=7)
+    fig.suptitle("Incremental mapping: error against run time (iterations per keyframe)", fontsize=9)
+    fig.tight_layout()
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", help="scene folder (default: generate the rg synth default)")
+    ap.add_argument("--budgets", type=int, nargs="+", default=[5, 10, 20, 40])
+    ap.add_argument("--real", default=str(Path(__file__).resolve().parents[2] / "shared/data/rgbd/box_toys_50"))
+    ap.add_argument("--out", default="bench_out")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+    default = MapConfig()
+    report = {"default_iters_per_keyframe": default.iters_per_keyframe, "synthetic": [], "real": None}
+    with tempfile.TemporaryDirectory() as tmp:
+        scene = args.scene
+        if scene is None:
+            scene = str(Path(tmp) / "synth")
+            t = time.perf_counter()
+            generate_scene(scene, SynthConfig(), default_objects_dir(), progress=False)
+            print(f"generated {scene} in {time.perf_counter() - t:.1f} s", file=sys.stderr)
+        for it in args.budgets:
+            mapper, rep = map_scene(scene, dataclasses.replace(default, iters_per_keyframe=it), progress=False)
+            rep["iters_per_keyframe"] = it
+            if it == default.iters_per_keyframe:  # stream the same frames again: how much does the map grow?
+                n1 = len(mapper.gaussians)
+                s2 = stream_frames(mapper, read_scene(scene).train, progress=False)
+                rep["second_pass"] = {"growth": round(len(mapper.gaussians) / n1 - 1, 4), "seconds": round(s2, 2),
+                                      "keyframes_added": len(mapper.keyframes) - rep["keyframes"]}
+            report["synthetic"].append(rep)
+            q = rep["test"]
+            print(f"synthetic, {it} it/kf: {rep['seconds_total']:.1f} s, {rep['keyframes']} kf, {rep['gaussians']} G, "
+                  f"PSNR {q['psnr']:.2f} dB (valid depth {q['psnr_valid_depth']:.2f}), depth median "
+                  f"{1000 * q['depth_abs_error_median_m']:.2f} mm, coverage {q['coverage']:.3f}"
+                  + (f", second pass growth {100 * rep['second_pass']['growth']:.2f}%" if "second_pass" in rep else ""),
+                  file=sys.stderr)
+    if Path(args.real).is_dir():
+        _, rep = map_scene(args.real, default, progress=False)
+        report["real"] = rep
+        q = rep["test"]
+        print(f"{Path(args.real).name}: {rep['seconds_total']:.1f} s, {rep['keyframes']} kf, {rep['gaussians']} G, "
+              f"PSNR {q['psnr']:.2f} dB (valid depth {q['psnr_valid_depth']:.2f}), depth median "
+              f"{1000 * q['depth_abs_error_median_m']:.2f} mm", file=sys.stderr)
+    png = Path(args.out) / "mapping_error_vs_time.png"
+    plot(report["synthetic"], default.iters_per_keyframe, png)
+    report["plot"] = str(png)
+    print(f"plot: {png}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(report))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,113 @@
+"""Gaussian map parameters and an Adam optimiser whose state follows additions and pruning.
+
+Parameters are stored unconstrained (log scales, opacity logits) and activated on use, so the
+optimiser can never produce a negative scale or an opacity outside [0, 1].
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+PARAMS = ("means", "log_scales", "quats", "opacity_logits", "colors")  # one row per Gaussian
+GLOBALS = ("background",)  # shared by the whole map
+
+
+class GaussianModel:
+    """N Gaussians: means [N, 3], log_scales [N, 3], quats [N, 4], opacity_logits [N], colors [N, 3]."""
+
+    def __init__(self):
+        self.means = torch.zeros(0, 3)
+        self.log_scales = torch.zeros(0, 3)
+        self.quats = torch.zeros(0, 4)
+        self.opacity_logits = torch.zeros(0)
+        self.colors = torch.zeros(0, 3)
+        # Colour seen where no Gaussian is (sky, beyond the depth range): learnt from those pixels.
+        self.background = torch.zeros(3)
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+    def tensors(self) -> dict[str, torch.Tensor]:
+        """Per-Gaussian tensors and the map's global ones (what the optimiser updates)."""
+        return {k: getattr(self, k) for k in PARAMS + GLOBALS}
+
+    @property
+    def scales(self) -> torch.Tensor:  # [N, 3]
+        return torch.exp(self.log_scales)
+
+    @property
+    def opacities(self) -> torch.Tensor:  # [N]
+        return torch.sigmoid(self.opacity_logits)
+
+    def append(self, means, scales, colors, opacity: float) -> None:
+        """Add Gaussians: means [M, 3], isotropic or per-axis scales [M] / [M, 3], colors [M, 3]."""
+        m = means.shape[0]
+        scales = scales[:, None].expand(m, 3) if scales.ndim == 1 else scales
+        q = torch.zeros(m, 4)
+        q[:, 0] = 1.0
+        o = min(max(opacity, 1e-4), 1 - 1e-4)
+        new = {"means": means.float(), "log_scales": torch.log(scales.float()), "quats": q,
+               "opacity_logits": torch.full((m,), math.log(o / (1 - o))), "colors": colors.float()}
+        for k, v in new.items():
+            setattr(self, k, torch.cat([getattr(self, k).detach(), v]))
+
+    def keep(self, mask: torch.Tensor) -> None:
+        """Keep only Gaussians where mask [N] is True."""
+        for k in PARAMS:
+            setattr(self, k, getattr(self, k).detach()[mask])
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return {k: v.detach().clone() for k, v in self.tensors().items()}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        n = state["means"].shape[0]
+        for k in PARAMS + GLOBALS:
+            if k not in state:
+                raise ValueError(f"map file: gaussians.{k} is missing")
+            t = state[k]
+            expect = {"means": (n, 3), "log_scales": (n, 3), "quats": (n, 4), "opacity_logits": (n,), "colors": (n, 3),
+                      "background": (3,)}[k]
+            if tuple(t.shape) != expect:
+                raise ValueError(f"map file: gaussians.{k} has shape {list(t.shape)}, expected {list(expect)}")
+            setattr(self, k, t.float().clone())
+
+
+class ResizableAdam:
+    """Adam over the model's tensors; moments are extended with zeros for new Gaussians and indexed
+    on pruning, so optimisation continues smoothly while the map changes size."""
+
+    def __init__(self, model: GaussianModel, lrs: dict[str, float], betas=(0.9, 0.999), eps: float = 1e-15):
+        self.model, self.lrs, self.betas, self.eps = model, lrs, betas, eps
+        self.m = {k: torch.zeros_like(v) for k, v in model.tensors().items()}
+        self.v = {k: torch.zeros_like(v) for k, v in model.tensors().items()}
+        self.t = 0
+
+    def sync(self) -> None:
+        """Grow the moments to the model's current size (new Gaussians start with zero moments)."""
+        for k, p in self.model.tensors().items():
+            if k in GLOBALS:
+                continue
+            extra = p.shape[0] - self.m[k].shape[0]
+            if extra > 0:
+                z = torch.zeros((extra,) + tuple(p.shape[1:]))
+                self.m[k], self.v[k] = torch.cat([self.m[k], z]), torch.cat([self.v[k], z])
+
+    def keep(self, mask: torch.Tensor) -> None:
+        for k in PARAMS:
+            self.m[k], self.v[k] = self.m[k][mask], self.v[k][mask]
+
+    @torch.no_grad()
+    def step(self, grads: dict[str, torch.Tensor]) -> None:
+        self.t += 1
+        b1, b2 = self.betas
+        c1, c2 = 1 - b1 ** self.t, 1 - b2 ** self.t
+        for k, g in grads.items():
+            if g is None or self.lrs.get(k, 0.0) == 0.0:
+                continue
+            g = torch.nan_to_num(g, nan=0.0, posinf=0.0, neginf=0.0)  # a bad pixel never poisons the map
+            self.m[k].mul_(b1).add_(g, alpha=1 - b1)
+            self.v[k].mul_(b2).addcmul_(g, g, value=1 - b2)
+            upd = (self.m[k] / c1) / ((self.v[k] / c2).sqrt() + self.eps)
+            p = getattr(self.model, k)
+            setattr(self.model, k, (p - self.lrs[k] * upd).detach())

@@ -1,0 +1,229 @@
+"""Incremental Gaussian mapping from posed RGB-D frames (no ROS; the node feeds it frames).
+
+Per frame: render the map from the frame's pose; pixels the map does not explain (low alpha or
+depth error) decide whether the frame is a keyframe; a keyframe seeds Gaussians only there and is
+optimised with a window of keyframes for a fixed iteration budget; then transparent, oversized or
+broken Gaussians are pruned and the map is kept under `max_gaussians`.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from ..config import MapConfig
+from ..render import Camera, RenderOutput, rasterize
+from .frames import PreparedFrame, prepare_frame
+from .gaussians import PARAMS, GaussianModel, ResizableAdam
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Keyframe:
+    """What the map keeps of a keyframe (working resolution); later stages add masks."""
+
+    index: int                 # position in the input stream
+    stamp: float
+    cam_to_world: np.ndarray   # [4, 4] OpenCV axes
+    K: np.ndarray              # [3, 3] at the working resolution
+    rgb: torch.Tensor          # [h, w, 3] float32 in [0, 1]
+    depth: torch.Tensor        # [h, w] float32 metres, 0 = invalid
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.rgb.shape[1], self.rgb.shape[0]
+
+
+@dataclass
+class FrameResult:
+    """What add_frame did with one frame."""
+
+    keyframe: bool
+    reason: str
+    added: int = 0
+    dropped: int = 0            # seeds not added because of max_gaussians
+    pruned: int = 0
+    unexplained: float = 0.0    # fraction of valid depth pixels the map did not explain
+    photometric_error: float = 0.0
+    seconds: dict = field(default_factory=dict)
+
+
+class Mapper:
+    def __init__(self, cfg: MapConfig | None = None):
+        self.cfg = cfg or MapConfig()
+        self.gaussians = GaussianModel()
+        self.keyframes: list[Keyframe] = []
+        lr = self.cfg
+        self.optim = ResizableAdam(self.gaussians, {
+            "means": lr.lr_means, "log_scales": lr.lr_scales, "quats": lr.lr_quats,
+            "opacity_logits": lr.lr_opacity, "colors": lr.lr_colors, "background": lr.lr_colors})
+        self.frames_seen = 0
+        self.last_stamp: float | None = None
+        self.totals = {"added": 0, "dropped": 0, "pruned": 0, "out_of_order": 0}
+        self.seconds = {"prepare": 0.0, "check": 0.0, "seed": 0.0, "optimise": 0.0, "prune": 0.0}
+        self._rng = torch.Generator().manual_seed(self.cfg.seed)
+
+    # ------------------------------------------------------------------------------ rendering
+
+    def camera(self, K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int) -> Camera:
+        return Camera.from_numpy(K, cam_to_world, width, height, self.cfg.near, self.cfg.far)
+
+    def render(self, K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int,
+               subset: torch.Tensor | None = None, return_ids: bool = False, background: bool = False) -> RenderOutput:
+        """Render colour, depth and alpha of the map; `background` composites the map's learnt
+        background colour where alpha < 1 (a picture), otherwise uncovered pixels stay black."""
+        g = self.gaussians
+        return rasterize(g.means, g.scales, g.quats, g.opacities, g.colors, self.camera(K, cam_to_world, width, height),
+                         subset=subset, return_ids=return_ids, background=g.background if background else None)
+
+    # ------------------------------------------------------------------------------ ingestion
+
+    def add_frame(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, cam_to_world: np.ndarray,
+                  stamp: float) -> FrameResult:
+        """Ingest one frame: rgb [H, W, 3] uint8, depth [H, W] float metres (0/NaN invalid),
+        K [3, 3], cam_to_world [4, 4] (OpenCV axes). Raises FrameError (map untouched) on bad input."""
+        t0 = time.perf_counter()
+        fr = prepare_frame(rgb, depth, K, cam_to_world, stamp, self.cfg.width)  # raises before any change
+        t1 = time.perf_counter()
+        self.seconds["prepare"] += t1 - t0
+        if self.last_stamp is not None and fr.stamp < self.last_stamp:
+            self.totals["out_of_order"] += 1
+            log.warning("frame stamp %.6f is older than the last one (%.6f): accepted", fr.stamp, self.last_stamp)
+        self.last_stamp = fr.stamp if self.last_stamp is None else max(self.last_stamp, fr.stamp)
+        index = self.frames_seen
+        self.frames_seen += 1
+
+        rgb_t = torch.from_numpy(fr.rgb)
+        depth_t = torch.from_numpy(fr.depth)
+        valid = depth_t > 0
+        h, w = depth_t.shape
+        with torch.no_grad():
+            if len(self.gaussians):
+                out = self.render(fr.K, fr.cam_to_world, w, h)
+                unexplained = self._unexplained(out, depth_t, valid)
+                explained = valid & ~unexplained
+                photo = float((out.channels - rgb_t).abs().mean(-1)[explained].mean()) if explained.any() else 1.0
+            else:
+                unexplained, photo = valid.clone(), 1.0
+        frac = float(unexplained.sum()) / max(int(valid.sum()), 1)
+        t2 = time.perf_counter()
+        self.seconds["check"] += t2 - t1
+        res = FrameResult(False, "", unexplained=frac, photometric_error=photo)
+        if not self.keyframes:
+            res.reason = "first frame"
+        elif frac > self.cfg.kf_new_fraction:
+            res.reason = f"{100 * frac:.1f}% of the view is not in the map"
+        elif photo > self.cfg.kf_photo_error:
+            res.reason = f"map renders this view with colour error {photo:.3f}"
+        else:
+            res.reason = f"already mapped ({100 * (1 - frac):.1f}% explained, colour error {photo:.3f})"
+            res.seconds = {"prepare": t1 - t0, "check": t2 - t1}
+            return res
+        res.keyframe = True
+        kf = Keyframe(index, fr.stamp, fr.cam_to_world, fr.K, rgb_t, depth_t)
+        self.keyframes.append(kf)
+        res.added, res.dropped = self._seed(fr, unexplained)
+        t3 = time.perf_counter()
+        self._optimise(self.cfg.iters_per_keyframe)
+        t4 = time.perf_counter()
+        res.pruned = self._prune()
+        t5 = time.perf_counter()
+        for k, dt in (("seed", t3 - t2), ("optimise", t4 - t3), ("prune", t5 - t4)):
+            self.seconds[k] += dt
+        res.seconds = {"prepare": t1 - t0, "check": t2 - t1, "seed": t3 - t2, "optimise": t4 - t3, "prune": t5 - t4}
+        self.totals["added"] += res.added
+        self.totals["dropped"] += res.dropped
+        self.totals["pruned"] += res.pruned
+        return res
+
+    def _unexplained(self, out: RenderOutput, depth: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        c = self.cfg
+        err = (out.depth - depth).abs()
+        tol = torch.clamp(depth * c.depth_error_rel, min=c.depth_error_abs)
+        return valid & ((out.alpha < c.unexplained_alpha) | (err > tol))
+
+    def _seed(self, fr: PreparedFrame, unexplained: torch.Tensor) -> tuple[int, int]:
+        """Back-project unexplained depth pixels (one per stride x stride block) as new Gaussians."""
+        c = self.cfg
+        s = c.seed_stride
+        off = len(self.keyframes) % s  # interleave the sampling grid between keyframes
+        grid = torch.zeros_like(unexplained)
+        grid[off::s, off::s] = True
+        vs, us = torch.nonzero(unexplained & grid, as_tuple=True)
+        n_cand = len(vs)
+        room = max(c.max_gaussians - len(self.gaussians), 0)
+        if n_cand > room:
+            pick = torch.randperm(n_cand, generator=self._rng)[:room].sort().values
+            vs, us = vs[pick], us[pick]
+        if len(vs) == 0:
+            return 0, n_cand
+        K = torch.as_tensor(fr.K, dtype=torch.float64)
+        z = torch.from_numpy(fr.depth)[vs, us].double()
+        pc = torch.stack([(us.double() - K[0, 2]) * z / K[0, 0], (vs.double() - K[1, 2]) * z / K[1, 1], z], 1)
+        c2w = torch.as_tensor(fr.cam_to_world)
+        pw = pc @ c2w[:3, :3].T + c2w[:3, 3]
+        # Scale from the local point spacing: the footprint of a stride x stride block at depth z.
+        scale = c.seed_scale * s * z / K[0, 0]
+        colors = torch.from_numpy(fr.rgb)[vs, us]
+        self.gaussians.append(pw.float(), scale.float(), colors, c.init_opacity)
+        self.optim.sync()
+        return len(vs), n_cand - len(vs)
+
+    def _sample_keyframe(self) -> Keyframe:
+        n = len(self.keyframes)
+        r = float(torch.rand(1, generator=self._rng))
+        if r < 0.4 or n == 1:
+            return self.keyframes[-1]
+        if r < 0.8:
+            lo = max(0, n - self.cfg.window)
+            return self.keyframes[int(torch.randint(lo, n, (1,), generator=self._rng))]
+        return self.keyframes[int(torch.randint(0, n, (1,), generator=self._rng))]
+
+    def _optimise(self, iters: int) -> None:
+        g, c = self.gaussians, self.cfg
+        for _ in range(iters):
+            kf = self._sample_keyframe()
+            w, h = kf.size
+            params = {k: v.detach().requires_grad_(True) for k, v in g.tensors().items()}
+            cam = self.camera(kf.K, kf.cam_to_world, w, h)
+            out = rasterize(params["means"], torch.exp(params["log_scales"]), params["quats"],
+                            torch.sigmoid(params["opacity_logits"]), params["colors"], cam)
+            valid = kf.depth > 0
+            nv = valid.sum().clamp(min=1)
+            l_rgb = ((out.channels - kf.rgb).abs().sum(-1) * valid).sum() / (3 * nv)
+            # The background colour learns from pixels without depth only (it never moves Gaussians).
+            invalid = ~valid
+            if invalid.any():
+                bg = (out.channels.detach() + (1.0 - out.alpha.detach())[..., None] * params["background"])
+                l_rgb = l_rgb + ((bg - kf.rgb).abs().sum(-1) * invalid).sum() / (3 * invalid.sum())
+            l_depth = ((out.depth - kf.depth).abs() * valid).sum() / nv
+            l_alpha = ((1.0 - out.alpha) * valid).sum() / nv
+            loss = l_rgb + c.lambda_depth * l_depth + c.lambda_alpha * l_alpha
+            if c.lambda_opacity > 0:
+                loss = loss + c.lambda_opacity * torch.sigmoid(params["opacity_logits"]).mean()
+            loss.backward()
+            self.optim.step({k: p.grad for k, p in params.items()})
+
+    def _prune(self) -> int:
+        g, c = self.gaussians, self.cfg
+        if not len(g):
+            return 0
+        with torch.no_grad():
+            finite = torch.stack([torch.isfinite(getattr(g, k)).reshape(len(g), -1).all(1) for k in PARAMS]).all(0)
+            keep = finite & (g.opacities > c.prune_opacity) & (g.scales.max(1).values < c.prune_scale)
+        n = int((~keep).sum())
+        if n:
+            g.keep(keep)
+            self.optim.keep(keep)
+        return n
+
+    # ------------------------------------------------------------------------------ summary
+
+    def stats(self) -> dict:
+        return {"frames": self.frames_seen, "keyframes": len(self.keyframes), "gaussians": len(self.gaussians),
+                **{k: int(v) for k, v in self.totals.items()},
+                "seconds": {k: round(v, 3) for k, v in self.seconds.items()}}

@@ -1,0 +1,40 @@
+"""Stream a scene's training frames through the Mapper (what `rg map` and the benchmarks run)."""
+from __future__ import annotations
+
+import resource
+import sys
+import time
+
+from ..config import MapConfig
+from ..eval.mapping import evaluate_views
+from ..io.captures import read_scene
+from .mapper import Mapper
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def stream_frames(mapper: Mapper, frames, progress: bool = True, desc: str = "map") -> float:
+    """Feed frames in order; returns seconds."""
+    from tqdm import tqdm
+
+    t = time.perf_counter()
+    bar = tqdm(frames, desc=desc, unit="frame", disable=not progress, file=sys.stderr)
+    for f in bar:
+        mapper.add_frame(f.load_rgb(), f.load_depth(), f.intrinsics.K, f.cam_to_world, f.stamp)
+        bar.set_postfix(kf=len(mapper.keyframes), g=len(mapper.gaussians))
+    return time.perf_counter() - t
+
+
+def map_scene(scene_dir, cfg: MapConfig, progress: bool = True) -> tuple[Mapper, dict]:
+    """Map the training frames of a scene and evaluate on its test frames."""
+    scene = read_scene(scene_dir, test_every=8)
+    mapper = Mapper(cfg)
+    seconds = stream_frames(mapper, scene.train, progress)
+    t = time.perf_counter()
+    quality = evaluate_views(mapper, scene.test)
+    report = {**mapper.stats(), "seconds_total": round(seconds, 3), "seconds_eval": round(time.perf_counter() - t, 3),
+              "test": quality, "peak_rss_mb": round(peak_rss_mb(), 1), "scene": str(scene_dir),
+              "train_frames": len(scene.train), "test_frames": len(scene.test)}
+    return mapper, report

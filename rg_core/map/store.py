@@ -1,0 +1,78 @@
+"""Map files: one versioned file (torch's safe `weights_only` format: tensors, numbers, strings).
+
+Holds the Gaussians, the configuration and, per keyframe, pose, intrinsics, stamp and the
+working-resolution image (uint8) and depth (float32 m), which the feature and grounding stages use.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..config import ConfigError, MapConfig, config_from_dict, config_to_dict
+from .mapper import Keyframe, Mapper
+
+FORMAT = "rg-map"
+VERSION = 1
+
+
+class MapFileError(ValueError):
+    """A map file that cannot be read; the message names the file and the problem."""
+
+
+def save_map(mapper: Mapper, path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = {
+        "format": FORMAT,
+        "version": VERSION,
+        "config": config_to_dict(mapper.cfg),
+        "gaussians": mapper.gaussians.state_dict(),
+        "keyframes": [{
+            "index": kf.index, "stamp": kf.stamp,
+            "cam_to_world": torch.from_numpy(np.asarray(kf.cam_to_world, np.float64)),
+            "K": torch.from_numpy(np.asarray(kf.K, np.float64)),
+            "rgb": (kf.rgb * 255.0).round().clamp(0, 255).to(torch.uint8),
+            "depth": kf.depth.float(),
+        } for kf in mapper.keyframes],
+        "stats": {"frames": mapper.frames_seen, **{k: int(v) for k, v in mapper.totals.items()}},
+    }
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(data, tmp)
+    tmp.replace(path)  # never leave a half-written map behind
+    return path
+
+
+def load_map(path: str | Path) -> Mapper:
+    path = Path(path)
+    if not path.is_file():
+        raise MapFileError(f"{path}: map file not found")
+    try:
+        data = torch.load(path, weights_only=True, map_location="cpu")
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure means the same to the user
+        raise MapFileError(f"{path}: not a readable map file ({exc.__class__.__name__}: {exc})") from exc
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise MapFileError(f"{path}: not an {FORMAT} file")
+    if data.get("version") != VERSION:
+        raise MapFileError(f"{path}: map format version {data.get('version')}, this build reads version {VERSION}")
+    try:
+        cfg = config_from_dict(data["config"], MapConfig)
+    except ConfigError as exc:
+        raise MapFileError(f"{path}: bad configuration in map: {exc}") from exc
+    mapper = Mapper(cfg)
+    try:
+        mapper.gaussians.load_state_dict(data["gaussians"])
+    except (KeyError, ValueError) as exc:
+        raise MapFileError(f"{path}: {exc}") from exc
+    mapper.optim.sync()
+    for kf in data["keyframes"]:
+        mapper.keyframes.append(Keyframe(int(kf["index"]), float(kf["stamp"]), kf["cam_to_world"].numpy(),
+                                         kf["K"].numpy(), kf["rgb"].float() / 255.0, kf["depth"].float()))
+    stats = data.get("stats", {})
+    mapper.frames_seen = int(stats.get("frames", len(mapper.keyframes)))
+    for k in mapper.totals:
+        mapper.totals[k] = int(stats.get(k, 0))
+    if mapper.keyframes:
+        mapper.last_stamp = max(kf.stamp for kf in mapper.keyframes)
+    return mapper

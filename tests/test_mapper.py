@@ -1,0 +1,144 @@
+"""Incremental mapper: bad frames, keyframe skipping, memory bound, quality, save/load."""
+import logging
+
+import numpy as np
+import pytest
+import torch
+
+from rg_core.config import MapConfig
+from rg_core.eval.mapping import evaluate_views
+from rg_core.map.frames import FrameError
+from rg_core.map.mapper import Mapper
+from rg_core.map.run import stream_frames
+from rg_core.map.store import MapFileError, load_map, save_map
+
+SMALL = dict(width=160, iters_per_keyframe=12)
+
+
+@pytest.fixture(scope="module")
+def mapped(synth_scene):
+    """The 16-view test scene mapped once (about 10 s)."""
+    mapper = Mapper(MapConfig(**SMALL))
+    stream_frames(mapper, synth_scene.train, progress=False)
+    return mapper
+
+
+def frame_args(frame):
+    return frame.load_rgb(), frame.load_depth(), frame.intrinsics.K, frame.cam_to_world, frame.stamp
+
+
+def test_quality_on_held_out_views(mapped, synth_scene):
+    q = evaluate_views(mapped, synth_scene.test)
+    assert q["views"] == 2
+    assert q["psnr_valid_depth"] > 24.0, q
+    assert q["psnr"] > 20.0, q                       # background colour fills the sky
+    assert q["depth_abs_error_median_m"] < 0.01, q
+    assert q["coverage_valid_depth"] > 0.95, q
+    assert len(mapped.keyframes) >= 2
+
+
+def test_standing_still_adds_no_keyframe(synth_scene):
+    mapper = Mapper(MapConfig(**SMALL))
+    rgb, depth, K, c2w, stamp = frame_args(synth_scene.train[3])
+    first = mapper.add_frame(rgb, depth, K, c2w, stamp)
+    n = len(mapper.gaussians)
+    again = [mapper.add_frame(rgb, depth, K, c2w, stamp + 0.1 * i) for i in range(1, 4)]
+    assert first.keyframe and not any(r.keyframe for r in again), [r.reason for r in again]
+    assert len(mapper.gaussians) == n and len(mapper.keyframes) == 1
+
+
+def test_second_pass_barely_grows_the_map(synth_scene):
+    mapper = Mapper(MapConfig(**SMALL))
+    stream_frames(mapper, synth_scene.train, progress=False)
+    n1, k1 = len(mapper.gaussians), len(mapper.keyframes)
+    results = [mapper.add_frame(*frame_args(f)) for f in synth_scene.train]
+    n2 = len(mapper.gaussians)
+    assert n2 < 1.05 * n1, (n1, n2)
+    assert sum(r.keyframe for r in results) <= max(1, k1 // 3)
+    assert all("already mapped" in r.reason for r in results if not r.keyframe)
+
+
+def test_memory_bound_reports_dropped(synth_scene):
+    mapper = Mapper(MapConfig(width=160, iters_per_keyframe=2, max_gaussians=1500))
+    results = [mapper.add_frame(*frame_args(f)) for f in synth_scene.train[:4]]
+    assert len(mapper.gaussians) <= 1500
+    assert sum(r.dropped for r in results) > 0 and mapper.stats()["dropped"] == sum(r.dropped for r in results)
+    assert mapper.optim.m["means"].shape[0] == len(mapper.gaussians)  # optimiser state follows
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda a: a.update(cam_to_world=np.full((4, 4), np.nan)), "NaN or inf"),
+    (lambda a: a.update(cam_to_world=np.diag([1.0, 2.0, 1.0, 1.0])), "not orthonormal"),
+    (lambda a: a.update(depth=np.zeros_like(a["depth"])), r"only 0.00% of depth pixels are valid"),
+    (lambda a: a.update(depth=a["depth"] * 1000.0), "wrong unit"),
+    (lambda a: a.update(depth=a["depth"] / 1000.0), "wrong unit"),
+    (lambda a: a.update(depth=a["depth"][:-2]), "depth is 160x118 but rgb is 160x120"),
+    (lambda a: a.update(rgb=a["rgb"].astype(np.float32)), "rgb must be uint8"),
+    (lambda a: a.update(depth=(a["depth"] * 1000).astype(np.uint16)), "convert uint16 mm first"),
+    (lambda a: a.update(rgb=a["rgb"][..., :2]), r"\[H, W, 3\]"),
+    (lambda a: a.update(K=np.eye(3) * 0), "positive focal lengths"),
+    (lambda a: a.update(stamp=float("nan")), "stamp must be finite"),
+])
+def test_bad_frames_are_rejected_and_map_untouched(mapped, synth_scene, mutate, message):
+    mapper = Mapper(MapConfig(**SMALL))
+    mapper.add_frame(*frame_args(synth_scene.train[0]))
+    before = {k: v.clone() for k, v in mapper.gaussians.tensors().items()}
+    n_kf, n_seen = len(mapper.keyframes), mapper.frames_seen
+    rgb, depth, K, c2w, stamp = frame_args(synth_scene.train[1])
+    args = dict(rgb=rgb, depth=depth, K=K, cam_to_world=c2w, stamp=stamp)
+    mutate(args)
+    with pytest.raises(FrameError, match=message):
+        mapper.add_frame(**args)
+    assert len(mapper.keyframes) == n_kf and mapper.frames_seen == n_seen
+    for k, v in mapper.gaussians.tensors().items():
+        assert torch.equal(v, before[k]), k
+    mapper.add_frame(*frame_args(synth_scene.train[1]))  # and the mapper still works
+
+
+def test_out_of_order_stamp_is_accepted_and_logged(synth_scene, caplog):
+    mapper = Mapper(MapConfig(width=160, iters_per_keyframe=1))
+    a, b = synth_scene.train[0], synth_scene.train[1]
+    mapper.add_frame(*frame_args(b))
+    with caplog.at_level(logging.WARNING):
+        mapper.add_frame(*frame_args(a))
+    assert mapper.frames_seen == 2 and mapper.stats()["out_of_order"] == 1
+    assert "older than the last" in caplog.text
+
+
+def test_nan_depth_pixels_are_invalid_not_fatal(synth_scene):
+    mapper = Mapper(MapConfig(width=160, iters_per_keyframe=3))
+    rgb, depth, K, c2w, stamp = frame_args(synth_scene.train[0])
+    depth = depth.copy()
+    depth[::3] = np.nan
+    depth[1::7] = np.inf
+    mapper.add_frame(rgb, depth, K, c2w, stamp)
+    assert len(mapper.gaussians) > 0
+    assert all(torch.isfinite(v).all() for v in mapper.gaussians.tensors().values())
+
+
+def test_save_load_round_trip(mapped, synth_scene, tmp_path):
+    path = save_map(mapped, tmp_path / "m.rgmap")
+    back = load_map(path)
+    assert len(back.gaussians) == len(mapped.gaussians) and len(back.keyframes) == len(mapped.keyframes)
+    f = synth_scene.test[0]
+    kf = mapped.keyframes[0]
+    w, h = kf.size
+    a = mapped.render(kf.K, f.cam_to_world, w, h, background=True)
+    b = back.render(kf.K, f.cam_to_world, w, h, background=True)
+    torch.testing.assert_close(a.channels, b.channels)
+    torch.testing.assert_close(back.keyframes[-1].rgb, mapped.keyframes[-1].rgb, atol=1 / 255, rtol=0)
+    torch.testing.assert_close(back.keyframes[-1].depth, mapped.keyframes[-1].depth)
+    np.testing.assert_allclose(back.keyframes[-1].cam_to_world, mapped.keyframes[-1].cam_to_world)
+    assert back.cfg == mapped.cfg
+    back.add_frame(*frame_args(synth_scene.train[0]))  # a loaded map keeps mapping
+
+
+def test_bad_map_files(tmp_path):
+    with pytest.raises(MapFileError, match="not found"):
+        load_map(tmp_path / "none.rgmap")
+    (tmp_path / "junk.rgmap").write_bytes(b"not a map")
+    with pytest.raises(MapFileError, match="not a readable map file"):
+        load_map(tmp_path / "junk.rgmap")
+    torch.save({"format": "rg-map", "version": 99}, tmp_path / "new.rgmap")
+    with pytest.raises(MapFileError, match="version 99"):
+        load_map(tmp_path / "new.rgmap")
