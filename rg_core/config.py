@@ -76,6 +76,8 @@ class MapConfig:
     """Working image width: frames are resized to it (aspect kept) for mapping."""
     iters_per_keyframe: int = 10
     """Optimisation iterations after each keyframe (the run-time budget; see bench_mapping.py)."""
+    final_iters: int = 0
+    """Iterations over all keyframes after the last frame (`rg map`; a node refines when idle)."""
     window: int = 8
     """Recent keyframes optimised together (older ones are revisited at random too)."""
     max_gaussians: int = 300000

@@ -56,9 +56,23 @@ def check_frame(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, cam_to_world:
         raise FrameError(f"median depth {med:.4g} m is outside [0.01, 50] m: depth in the wrong unit?")
 
 
+def downscale_depth(depth: np.ndarray, w: int, h: int, max_std: float = 0.02) -> np.ndarray:
+    """Resize depth [H, W] (0 = invalid) to w x h: each output pixel is the mean of the valid input
+    pixels it covers (sparse sensors: their holes fill in). Blocks whose valid depths spread by more
+    than `max_std` (m) straddle an edge and become invalid instead of a flying pixel between surfaces."""
+    valid = (depth > 0).astype(np.float32)
+    d = depth.astype(np.float32) * valid
+    n = cv2.resize(valid, (w, h), interpolation=cv2.INTER_AREA)
+    s1 = cv2.resize(d, (w, h), interpolation=cv2.INTER_AREA)
+    s2 = cv2.resize(d * d, (w, h), interpolation=cv2.INTER_AREA)
+    ok = n > 1e-6
+    mean = np.where(ok, s1 / np.maximum(n, 1e-6), 0.0)
+    var = np.where(ok, s2 / np.maximum(n, 1e-6) - mean * mean, 0.0)
+    return np.where(ok & (var <= max_std * max_std), mean, 0.0).astype(np.float32)
+
+
 def prepare_frame(rgb, depth, K, cam_to_world, stamp, width: int) -> PreparedFrame:
-    """Validate and resize to `width` pixels wide (aspect kept). Depth is resized with nearest
-    neighbour so invalid (0) pixels never blend into valid ones."""
+    """Validate and resize to `width` pixels wide (aspect kept); depth with `downscale_depth`."""
     check_frame(rgb, depth, K, cam_to_world, stamp)
     H, W = depth.shape
     w = min(width, W)
@@ -67,5 +81,5 @@ def prepare_frame(rgb, depth, K, cam_to_world, stamp, width: int) -> PreparedFra
     depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
     if (w, h) != (W, H):
         rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
-        depth = cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST)
+        depth = downscale_depth(depth, w, h)
     return PreparedFrame(rgb.astype(np.float32) / 255.0, depth, scale_intrinsics(K, sx, sy), np.asarray(cam_to_world, np.float64), float(stamp))

@@ -64,7 +64,7 @@ class Mapper:
         self.frames_seen = 0
         self.last_stamp: float | None = None
         self.totals = {"added": 0, "dropped": 0, "pruned": 0, "out_of_order": 0}
-        self.seconds = {"prepare": 0.0, "check": 0.0, "seed": 0.0, "optimise": 0.0, "prune": 0.0}
+        self.seconds = {"prepare": 0.0, "check": 0.0, "seed": 0.0, "optimise": 0.0, "prune": 0.0, "refine": 0.0}
         self._rng = torch.Generator().manual_seed(self.cfg.seed)
 
     # ------------------------------------------------------------------------------ rendering
@@ -92,7 +92,10 @@ class Mapper:
         self.seconds["prepare"] += t1 - t0
         if self.last_stamp is not None and fr.stamp < self.last_stamp:
             self.totals["out_of_order"] += 1
-            log.warning("frame stamp %.6f is older than the last one (%.6f): accepted", fr.stamp, self.last_stamp)
+            n = self.totals["out_of_order"]
+            if n == 1 or n % 100 == 0:  # rate-limited: a replayed bag must not flood the log
+                log.warning("frame stamp %.6f is older than the last one (%.6f): accepted (%d such frames so far)",
+                            fr.stamp, self.last_stamp, n)
         self.last_stamp = fr.stamp if self.last_stamp is None else max(self.last_stamp, fr.stamp)
         index = self.frames_seen
         self.frames_seen += 1
@@ -173,8 +176,21 @@ class Mapper:
         self.optim.sync()
         return len(vs), n_cand - len(vs)
 
-    def _sample_keyframe(self) -> Keyframe:
+    def refine(self, iters: int) -> float:
+        """Optimise over all keyframes uniformly (what a robot does when idle, and `rg map` at the
+        end of a run: `final_iters`); then prune. Returns seconds."""
+        t = time.perf_counter()
+        if self.keyframes and iters > 0:
+            self._optimise(iters, uniform=True)
+            self.totals["pruned"] += self._prune()
+        dt = time.perf_counter() - t
+        self.seconds["refine"] = self.seconds.get("refine", 0.0) + dt
+        return dt
+
+    def _sample_keyframe(self, uniform: bool = False) -> Keyframe:
         n = len(self.keyframes)
+        if uniform:
+            return self.keyframes[int(torch.randint(0, n, (1,), generator=self._rng))]
         r = float(torch.rand(1, generator=self._rng))
         if r < 0.4 or n == 1:
             return self.keyframes[-1]
@@ -183,10 +199,10 @@ class Mapper:
             return self.keyframes[int(torch.randint(lo, n, (1,), generator=self._rng))]
         return self.keyframes[int(torch.randint(0, n, (1,), generator=self._rng))]
 
-    def _optimise(self, iters: int) -> None:
+    def _optimise(self, iters: int, uniform: bool = False) -> None:
         g, c = self.gaussians, self.cfg
         for _ in range(iters):
-            kf = self._sample_keyframe()
+            kf = self._sample_keyframe(uniform)
             w, h = kf.size
             params = {k: v.detach().requires_grad_(True) for k, v in g.tensors().items()}
             cam = self.camera(kf.K, kf.cam_to_world, w, h)
@@ -194,12 +210,10 @@ class Mapper:
                             torch.sigmoid(params["opacity_logits"]), params["colors"], cam)
             valid = kf.depth > 0
             nv = valid.sum().clamp(min=1)
-            l_rgb = ((out.channels - kf.rgb).abs().sum(-1) * valid).sum() / (3 * nv)
-            # The background colour learns from pixels without depth only (it never moves Gaussians).
-            invalid = ~valid
-            if invalid.any():
-                bg = (out.channels.detach() + (1.0 - out.alpha.detach())[..., None] * params["background"])
-                l_rgb = l_rgb + ((bg - kf.rgb).abs().sum(-1) * invalid).sum() / (3 * invalid.sum())
+            # Colour: the whole image against the render composited over the learnt background
+            # (Gaussians grow into depth holes; pixels no Gaussian reaches teach the background).
+            rgb = out.channels + (1.0 - out.alpha)[..., None] * params["background"]
+            l_rgb = (rgb - kf.rgb).abs().mean()
             l_depth = ((out.depth - kf.depth).abs() * valid).sum() / nv
             l_alpha = ((1.0 - out.alpha) * valid).sum() / nv
             loss = l_rgb + c.lambda_depth * l_depth + c.lambda_alpha * l_alpha

@@ -32,6 +32,7 @@ def map_scene(scene_dir, cfg: MapConfig, progress: bool = True) -> tuple[Mapper,
     scene = read_scene(scene_dir, test_every=8)
     mapper = Mapper(cfg)
     seconds = stream_frames(mapper, scene.train, progress)
+    seconds += mapper.refine(cfg.final_iters)
     t = time.perf_counter()
     quality = evaluate_views(mapper, scene.test)
     report = {**mapper.stats(), "seconds_total": round(seconds, 3), "seconds_eval": round(time.perf_counter() - t, 3),

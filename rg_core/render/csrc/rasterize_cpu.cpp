@@ -98,6 +98,38 @@ struct TileData {
   }
 };
 
+// Pixels of one tile row where a Gaussian can reach alpha >= 1/255, from its conic: the row's
+// solutions of a dx^2 + 2 b dx dy + c dy^2 <= -2 thr, widened by one pixel on each side. Pixels
+// outside are exactly those the per-pixel test would skip, so visiting only these spans changes
+// nothing but the time. Returns false if the row has none.
+struct Footprint {
+  double u, v, a, b, c, q, det, dy_max;
+  bool degenerate;
+  Footprint(const TileData& td, int64_t j) {
+    u = td.u[j]; v = td.v[j]; a = td.a[j]; b = td.b[j]; c = td.c[j];
+    q = -2.0 * double(td.thr[j]);
+    det = a * c - b * b;
+    degenerate = !(det > 0.0) || !(a > 0.0) || !(q > 0.0);  // then visit the whole tile
+    dy_max = degenerate ? 0.0 : std::sqrt(q * a / det);
+  }
+  void rows(int y0, int y1, int& r0, int& r1) const {  // [r0, r1) within [y0, y1)
+    if (degenerate) { r0 = y0; r1 = y1; return; }
+    r0 = std::max(y0, int(std::max(std::ceil(v - dy_max) - 1.0, -1.0)));
+    r1 = std::min(y1, int(std::min(std::floor(v + dy_max) + 2.0, 1e9)));
+  }
+  bool cols(int py, int x0, int x1, int& c0, int& c1) const {  // [c0, c1) within [x0, x1)
+    if (degenerate) { c0 = x0; c1 = x1; return true; }
+    const double dy = v - py;
+    const double disc = q * a - det * dy * dy;
+    if (disc < 0.0) return false;
+    const double sq = std::sqrt(disc);
+    const double lo = u - (-b * dy + sq) / a, hi = u - (-b * dy - sq) / a;
+    c0 = std::max(x0, int(std::max(std::ceil(lo) - 1.0, -1.0)));
+    c1 = std::min(x1, int(std::min(std::floor(hi) + 2.0, 1e9)));
+    return c0 < c1;
+  }
+};
+
 }  // namespace
 
 // -> colour [H, W, C], final transmittance [H, W], count of list entries processed [H, W],
@@ -140,37 +172,55 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
 #pragma omp parallel
   {
     TileData td;
+    std::vector<float> T, best_w;
+    std::vector<int32_t> best, last;
+    std::vector<uint8_t> done;
 #pragma omp for schedule(dynamic, 1)
     for (int64_t t = 0; t < n_tiles; ++t) {
       const int64_t s = bins.offsets[t], k = bins.offsets[t + 1] - s;
       const int32_t* ids = bins.gids.data() + s;
       td.load(ids, k, m2, cn, op);
       const int ty = int(t / tiles_x), tx = int(t % tiles_x);
-      for (int py = ty * TS; py < std::min((ty + 1) * TS, H); ++py) {
-        for (int px = tx * TS; px < std::min((tx + 1) * TS, W); ++px) {
-          const float fx = float(px), fy = float(py);
-          float T = 1.0f, best_w = 0.0f;
-          int32_t best = -1, last = 0;
-          float* o_pix = out_p + (int64_t(py) * W + px) * C;
-          std::fill(o_pix, o_pix + C, 0.0f);
-          for (int64_t j = 0; j < k; ++j) {
-            const float dx = td.u[j] - fx, dy = td.v[j] - fy;
+      const int y0 = ty * TS, y1 = std::min(y0 + TS, H), x0 = tx * TS, x1 = std::min(x0 + TS, W);
+      const int tw = x1 - x0, P = tw * (y1 - y0);
+      T.assign(P, 1.0f); best_w.assign(P, 0.0f); best.assign(P, -1); last.assign(P, 0); done.assign(P, 0);
+      for (int py = y0; py < y1; ++py) std::fill_n(out_p + (int64_t(py) * W + x0) * C, int64_t(tw) * C, 0.0f);
+      int n_done = 0;
+      // Gaussian-major: each Gaussian visits only its footprint; every pixel still sees the
+      // Gaussians in depth order with the same tests as the per-pixel definition.
+      for (int64_t j = 0; j < k && n_done < P; ++j) {
+        const Footprint fp(td, j);
+        int r0, r1;
+        fp.rows(y0, y1, r0, r1);
+        const float* cg = col + int64_t(ids[j]) * C;
+        for (int py = r0; py < r1; ++py) {
+          int c0, c1;
+          if (!fp.cols(py, x0, x1, c0, c1)) continue;
+          const float fy = float(py);
+          for (int px = c0; px < c1; ++px) {
+            const int p = (py - y0) * tw + (px - x0);
+            if (done[p]) continue;
+            const float dx = td.u[j] - float(px), dy = td.v[j] - fy;
             const float power = -0.5f * (td.a[j] * dx * dx + td.c[j] * dy * dy) - td.b[j] * dx * dy;
             if (power > 0.0f || power < td.thr[j]) continue;
             const float alpha = std::min(kAlphaMax, td.o[j] * std::exp(power));
             if (alpha < kAlphaMin) continue;
-            const float next_T = T * (1.0f - alpha);
-            if (next_T < kTMin) break;
-            const float w = alpha * T;
-            const float* cg = col + int64_t(ids[j]) * C;
+            const float next_T = T[p] * (1.0f - alpha);
+            if (next_T < kTMin) { done[p] = 1; ++n_done; continue; }
+            const float w = alpha * T[p];
+            float* o_pix = out_p + (int64_t(py) * W + px) * C;
             for (int64_t ch = 0; ch < C; ++ch) o_pix[ch] += w * cg[ch];
-            if (w > best_w) { best_w = w; best = ids[j]; }
-            T = next_T;
-            last = int32_t(j + 1);
+            if (w > best_w[p]) { best_w[p] = w; best[p] = ids[j]; }
+            T[p] = next_T;
+            last[p] = int32_t(j + 1);
           }
-          tf_p[int64_t(py) * W + px] = T;
-          nc_p[int64_t(py) * W + px] = last;
-          id_p[int64_t(py) * W + px] = best;
+        }
+      }
+      for (int py = y0; py < y1; ++py) {
+        for (int px = x0; px < x1; ++px) {
+          const int p = (py - y0) * tw + (px - x0);
+          const int64_t pix = int64_t(py) * W + px;
+          tf_p[pix] = T[p]; nc_p[pix] = last[p]; id_p[pix] = best[p];
         }
       }
     }
@@ -216,7 +266,7 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tens
     std::vector<float>& g = bufs[thread_id()];
     g.assign(n * stride, 0.0f);
     TileData td;
-    std::vector<float> S(C);
+    std::vector<float> T, S, acc(stride);
 #pragma omp for schedule(static, 1)
     for (int64_t t = 0; t < n_tiles; ++t) {
       const int64_t s = off[t], k = off[t + 1] - s;
@@ -224,44 +274,65 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tens
       const int32_t* ids = gid + s;
       td.load(ids, k, m2, cn, op);
       const int ty = int(t / tiles_x), tx = int(t % tiles_x);
-      for (int py = ty * TS; py < std::min((ty + 1) * TS, H); ++py) {
-        for (int px = tx * TS; px < std::min((tx + 1) * TS, W); ++px) {
+      const int y0 = ty * TS, y1 = std::min(y0 + TS, H), x0 = tx * TS, x1 = std::min(x0 + TS, W);
+      const int tw = x1 - x0, P = tw * (y1 - y0);
+      T.resize(P);
+      S.assign(int64_t(P) * C, 0.0f);  // per pixel: sum over Gaussians behind of c_j alpha_j T_j
+      int max_nc = 0;
+      for (int py = y0; py < y1; ++py)
+        for (int px = x0; px < x1; ++px) {
           const int64_t pix = int64_t(py) * W + px;
-          const float fx = float(px), fy = float(py);
-          const float T_fin = tf[pix];
-          const float* gout = go + pix * C;
-          const float galpha = ga[pix];
-          std::fill(S.begin(), S.end(), 0.0f);  // sum over Gaussians behind: c_j alpha_j T_j
-          float T = T_fin;
-          for (int64_t j = int64_t(nc[pix]) - 1; j >= 0; --j) {
-            const float dx = td.u[j] - fx, dy = td.v[j] - fy;
+          T[(py - y0) * tw + (px - x0)] = tf[pix];
+          max_nc = std::max(max_nc, int(nc[pix]));
+        }
+      // Back to front, Gaussian-major over footprints; per pixel the same sequence as the forward.
+      for (int64_t j = int64_t(max_nc) - 1; j >= 0; --j) {
+        const Footprint fp(td, j);
+        int r0, r1;
+        fp.rows(y0, y1, r0, r1);
+        const int32_t gi = ids[j];
+        const float* cg = col + int64_t(gi) * C;
+        bool touched = false;
+        for (int py = r0; py < r1; ++py) {
+          int c0, c1;
+          if (!fp.cols(py, x0, x1, c0, c1)) continue;
+          const float fy = float(py);
+          for (int px = c0; px < c1; ++px) {
+            const int64_t pix = int64_t(py) * W + px;
+            if (j >= nc[pix]) continue;
+            const int p = (py - y0) * tw + (px - x0);
+            const float dx = td.u[j] - float(px), dy = td.v[j] - fy;
             const float power = -0.5f * (td.a[j] * dx * dx + td.c[j] * dy * dy) - td.b[j] * dx * dy;
             if (power > 0.0f || power < td.thr[j]) continue;
             const float vis = std::exp(power);
             const float raw = td.o[j] * vis;
             const float alpha = std::min(kAlphaMax, raw);
             if (alpha < kAlphaMin) continue;
+            if (!touched) { std::fill(acc.begin(), acc.end(), 0.0f); touched = true; }
             const float inv = 1.0f / (1.0f - alpha);
-            T *= inv;  // transmittance in front of Gaussian j
-            const float w = alpha * T;
-            const int32_t gi = ids[j];
-            const float* cg = col + int64_t(gi) * C;
-            float* gb = g.data() + int64_t(gi) * stride;
-            float dL_dalpha = galpha * T_fin * inv;
+            T[p] *= inv;  // transmittance in front of Gaussian j
+            const float w = alpha * T[p];
+            const float* gout = go + pix * C;
+            float* Sp = S.data() + int64_t(p) * C;
+            float dL_dalpha = ga[pix] * tf[pix] * inv;
             for (int64_t ch = 0; ch < C; ++ch) {
-              gb[6 + ch] += w * gout[ch];
-              dL_dalpha += gout[ch] * (T * cg[ch] - S[ch] * inv);
-              S[ch] += w * cg[ch];
+              acc[6 + ch] += w * gout[ch];
+              dL_dalpha += gout[ch] * (T[p] * cg[ch] - Sp[ch] * inv);
+              Sp[ch] += w * cg[ch];
             }
             if (raw > kAlphaMax) continue;  // clamped alpha: no gradient to opacity or shape
             const float dL_dpower = dL_dalpha * alpha;
-            gb[5] += dL_dalpha * vis;
-            gb[2] += dL_dpower * (-0.5f * dx * dx);
-            gb[3] += dL_dpower * (-dx * dy);
-            gb[4] += dL_dpower * (-0.5f * dy * dy);
-            gb[0] += dL_dpower * (-(td.a[j] * dx + td.b[j] * dy));
-            gb[1] += dL_dpower * (-(td.c[j] * dy + td.b[j] * dx));
+            acc[5] += dL_dalpha * vis;
+            acc[2] += dL_dpower * (-0.5f * dx * dx);
+            acc[3] += dL_dpower * (-dx * dy);
+            acc[4] += dL_dpower * (-0.5f * dy * dy);
+            acc[0] += dL_dpower * (-(td.a[j] * dx + td.b[j] * dy));
+            acc[1] += dL_dpower * (-(td.c[j] * dy + td.b[j] * dx));
           }
+        }
+        if (touched) {
+          float* gb = g.data() + int64_t(gi) * stride;
+          for (int64_t e = 0; e < stride; ++e) gb[e] += acc[e];
         }
       }
     }

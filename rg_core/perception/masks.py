@@ -1,0 +1,55 @@
+"""Mask generator interface: image (+ depth, + camera) -> masks with confidence and level.
+
+Backends register by name; configuration picks one. A backend that cannot load says which file
+or package it needs.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+
+@dataclass
+class Mask:
+    mask: np.ndarray   # [H, W] bool
+    score: float       # confidence in [0, 1]
+    level: int         # 0 part, 1 object, 2 group / support surface (SAM's three levels)
+
+
+class BackendError(RuntimeError):
+    """A model backend cannot load: the message names the missing file or package."""
+
+
+class MaskGenerator:
+    name = "base"
+    needs_depth = False
+
+    def generate(self, rgb: np.ndarray, depth: np.ndarray | None = None, K: np.ndarray | None = None) -> list[Mask]:
+        raise NotImplementedError
+
+    def check_inputs(self, rgb, depth, K) -> None:
+        if not isinstance(rgb, np.ndarray) or rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+            raise ValueError(f"{self.name}: rgb must be uint8 [H, W, 3], got "
+                             f"{getattr(rgb, 'dtype', type(rgb))} {getattr(rgb, 'shape', '')}")
+        if self.needs_depth:
+            if depth is None or K is None:
+                raise ValueError(f"{self.name}: needs depth [H, W] (m) and K [3, 3]")
+            if depth.shape != rgb.shape[:2]:
+                raise ValueError(f"{self.name}: depth {depth.shape} does not match rgb {rgb.shape[:2]}")
+            if np.asarray(K).shape != (3, 3):
+                raise ValueError(f"{self.name}: K must be [3, 3], got {np.asarray(K).shape}")
+
+
+_REGISTRY: dict[str, Callable[..., MaskGenerator]] = {}
+
+
+def register(name: str, factory: Callable[..., MaskGenerator]) -> None:
+    _REGISTRY[name] = factory
+
+
+def make_mask_generator(name: str, **kwargs) -> MaskGenerator:
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown mask generator {name!r}; known: {sorted(_REGISTRY)}")
+    return _REGISTRY[name](**kwargs)
