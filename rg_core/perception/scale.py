@@ -13,9 +13,10 @@ def mask_scale(mask: np.ndarray, depth: np.ndarray, K: np.ndarray, rendered_dept
     """Scale s of a mask, as in the paper: the standard deviation of the mask's 3D points.
 
     mask [H, W] bool, depth [H, W] metres (0/NaN invalid). Sensor depth is used where valid and
-    `rendered_depth` (from the map) fills the rest. The spread is robust: per axis, 1.4826 x the
-    median absolute deviation (equal to the std dev for a Gaussian), combined as
-    sqrt(sum of the three variances), so flying pixels at object edges do not inflate it.
+    `rendered_depth` (from the map) fills the rest. s = sqrt(trace of the covariance) of the points
+    (their RMS distance to the centroid), computed on inliers only: points further than 3 robust
+    standard deviations (1.4826 x MAD) from the median on any axis, such as flying pixels at object
+    edges, are left out. For compact shapes nothing is left out and s is exact.
     """
     mask = np.asarray(mask, dtype=bool)
     if mask.ndim != 2 or mask.shape != depth.shape:
@@ -31,5 +32,9 @@ def mask_scale(mask: np.ndarray, depth: np.ndarray, K: np.ndarray, rendered_dept
         raise MaskScaleError(f"mask has {len(vs)} pixels with valid depth, need at least {min_points}")
     z = d[vs, us].astype(np.float64)
     pts = np.stack([(us - K[0, 2]) * z / K[0, 0], (vs - K[1, 2]) * z / K[1, 1], z], 1)
-    mad = np.median(np.abs(pts - np.median(pts, 0)), 0) * 1.4826
-    return float(np.sqrt((mad ** 2).sum()))
+    med = np.median(pts, 0)
+    robust_std = np.median(np.abs(pts - med), 0) * 1.4826
+    inl = np.all(np.abs(pts - med) <= 3.0 * robust_std + 1e-9, axis=1)
+    if inl.sum() < min_points:
+        inl = np.ones(len(pts), bool)  # degenerate spread (e.g. a flat patch): keep all
+    return float(np.sqrt(pts[inl].var(0).sum()))
