@@ -45,4 +45,10 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from rg_core.util import stdout_to_stderr
+
+    with stdout_to_stderr() as real_stdout:  # C libraries print to stdout: keep it for the JSON line
+        sys.stdout = real_stdout
+        code = main()
+        sys.stdout = sys.__stdout__
+    sys.exit(code)

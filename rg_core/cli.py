@@ -6,7 +6,6 @@ and logs go to stderr (C libraries that print to stdout are redirected while the
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import json
 import os
@@ -16,20 +15,7 @@ from pathlib import Path
 
 from .config import ConfigError, load_config
 from .io.images import SceneError
-
-
-@contextlib.contextmanager
-def _stdout_to_stderr():
-    """Send fd 1 to fd 2 (pybullet and other C code print to stdout) and give it back after."""
-    sys.stdout.flush()
-    saved = os.dup(1)
-    os.dup2(2, 1)
-    try:
-        yield os.fdopen(os.dup(saved), "w")
-    finally:
-        sys.stdout.flush()
-        os.dup2(saved, 1)
-        os.close(saved)
+from .util import stdout_to_stderr
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -140,7 +126,7 @@ def _print_human(result: dict, file) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    with _stdout_to_stderr() as real_stdout:
+    with stdout_to_stderr() as real_stdout:
         try:
             cfg = load_config(args.config)
             result, code = args.func(args, cfg), 0
@@ -151,8 +137,6 @@ def main(argv: list[str] | None = None) -> int:
             real_stdout.write(json.dumps(result) + "\n")
         elif code == 0:
             _print_human(result, real_stdout)
-        real_stdout.flush()
-        real_stdout.close()
     return code
 
 

