@@ -178,3 +178,15 @@ def test_bad_capture_folder(tmp_path):
     bad_log.write_text("0 0 1\n1 0 0 0\n0 1 0 0\n")
     with pytest.raises(SceneError, match="multiple of 5"):
         read_open3d_log(bad_log)
+
+
+def test_ycb_reader():
+    from rg_core.io.ycb import read_ycb, ycb_class_name
+
+    classes, frames = read_ycb(need_rgbd("ycb_video_3"))
+    assert len(classes) == 21 and classes[4] == "mustard bottle" and ycb_class_name("025_mug") == "mug"
+    assert len(frames) == 3
+    f = frames[0]
+    assert f.rgb.shape == (480, 640, 3) and f.K[0, 0] == pytest.approx(1066.8, abs=0.5)
+    assert 0.3 < float(np.median(f.depth[f.depth > 0])) < 3.0  # factor 10000 read as metres
+    assert set(f.class_ids) <= set(np.unique(f.label).tolist()) and f.class_ids
