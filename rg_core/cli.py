@@ -79,6 +79,14 @@ def cmd_map(args, cfg) -> dict:
                               ("width", args.width)) if v is not None}
     mcfg = dataclasses.replace(cfg.map, **over)
     mapper, report = map_scene(args.scene, mcfg, progress=not args.quiet)
+    if args.supervise:
+        from .perception.embed import make_embedder
+        from .perception.masks import make_mask_generator
+        from .perception.supervision import supervise_map
+
+        t = time.perf_counter()
+        sset = supervise_map(mapper, make_mask_generator("rgbd"), make_embedder("conse"), progress=not args.quiet)
+        report["supervision"] = {**sset.stats(), "seconds_total": round(time.perf_counter() - t, 3)}
     report["map"] = str(save_map(mapper, args.out))
     return report
 
@@ -109,6 +117,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-gaussians", type=_positive)
     p.add_argument("--iters-per-keyframe", type=int)
     p.add_argument("--width", type=_positive, help="working image width")
+    p.add_argument("--supervise", action="store_true",
+                   help="also compute masks, scales, embeddings and PCA per keyframe (stored in the map)")
     common(p)
     p.set_defaults(func=cmd_map)
 

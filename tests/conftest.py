@@ -44,3 +44,12 @@ def need_rgbd(name: str) -> Path:
     if not path.is_dir():
         pytest.skip(f"{path} is missing (../shared/data beside the checkout)")
     return path
+
+
+@pytest.fixture(scope="session")
+def conse_embedder():
+    """The packaged offline embedder (loads in about 10 s; shared by the session)."""
+    pytest.importorskip("efficientnet_lite_pytorch")
+    from rg_core.perception.embed import make_embedder
+
+    return make_embedder("conse", top_k=10)

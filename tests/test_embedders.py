@@ -101,13 +101,8 @@ def test_onnx_clip_errors(onnx_clip, tmp_path):
         emb.encode_images([np.zeros((10, 10), np.float32)])
 
 
-@pytest.fixture(scope="module")
-def conse():
-    pytest.importorskip("efficientnet_lite_pytorch")
-    return make_embedder("conse", top_k=10)
-
-
-def test_conse_offline_default(conse, synth_scene):
+def test_conse_offline_default(conse_embedder, synth_scene):
+    conse = conse_embedder
     t = conse.encode_texts(["coffee mug", "banana"])
     assert t.shape == (2, conse.dim) and conse.dim == 384
     f = synth_scene.frames[2]

@@ -66,6 +66,7 @@ class Mapper:
         self.totals = {"added": 0, "dropped": 0, "pruned": 0, "out_of_order": 0}
         self.seconds = {"prepare": 0.0, "check": 0.0, "seed": 0.0, "optimise": 0.0, "prune": 0.0, "refine": 0.0}
         self._rng = torch.Generator().manual_seed(self.cfg.seed)
+        self.supervision = None  # perception.supervision.SupervisionSet, once computed
 
     # ------------------------------------------------------------------------------ rendering
 

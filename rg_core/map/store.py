@@ -37,6 +37,8 @@ def save_map(mapper: Mapper, path: str | Path) -> Path:
             "depth": kf.depth.float(),
         } for kf in mapper.keyframes],
         "stats": {"frames": mapper.frames_seen, **{k: int(v) for k, v in mapper.totals.items()}},
+        # Masks, scales, embeddings per keyframe and the PCA basis (None until computed).
+        "supervision": mapper.supervision.state_dict() if mapper.supervision is not None else None,
     }
     tmp = path.with_name(path.name + ".tmp")
     torch.save(data, tmp)
@@ -69,6 +71,13 @@ def load_map(path: str | Path) -> Mapper:
     for kf in data["keyframes"]:
         mapper.keyframes.append(Keyframe(int(kf["index"]), float(kf["stamp"]), kf["cam_to_world"].numpy(),
                                          kf["K"].numpy(), kf["rgb"].float() / 255.0, kf["depth"].float()))
+    if data.get("supervision") is not None:
+        from ..perception.supervision import SupervisionSet
+
+        try:
+            mapper.supervision = SupervisionSet.from_state_dict(data["supervision"])
+        except (KeyError, ValueError, TypeError) as exc:
+            raise MapFileError(f"{path}: bad supervision data ({exc})") from exc
     stats = data.get("stats", {})
     mapper.frames_seen = int(stats.get("frames", len(mapper.keyframes)))
     for k in mapper.totals:

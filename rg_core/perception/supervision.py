@@ -1,0 +1,139 @@
+"""Per-keyframe 2D supervision, computed once and stored with the map: masks -> physical scales ->
+image-text embeddings, plus the map-wide PCA that compresses embeddings to the field's 64 dims."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from .embed import Embedder, mask_crop
+from .masks import MaskGenerator
+from .pca import IncrementalPCA
+from .scale import MaskScaleError, mask_scale
+
+
+@dataclass
+class KeyframeSupervision:
+    masks: np.ndarray          # [M, h, w] bool, at the keyframe's working resolution
+    scores: np.ndarray         # [M] float32 confidence
+    levels: np.ndarray         # [M] int8: 0 part, 1 object, 2 group
+    scales: np.ndarray         # [M] float32 physical scale (m)
+    embeddings: torch.Tensor   # [M, D] raw image-text embeddings (unit rows)
+    seconds: dict = field(default_factory=dict)  # per stage: masks, scales, embed
+    dropped: int = 0           # masks without a measurable scale or crop
+
+    def state_dict(self) -> dict:
+        M, h, w = self.masks.shape
+        return {"shape": [M, h, w], "masks": torch.from_numpy(np.packbits(self.masks.reshape(M, -1), axis=1)),
+                "scores": torch.from_numpy(self.scores), "levels": torch.from_numpy(self.levels.astype(np.int8)),
+                "scales": torch.from_numpy(self.scales), "embeddings": self.embeddings.float(),
+                "seconds": {k: float(v) for k, v in self.seconds.items()}, "dropped": int(self.dropped)}
+
+    @staticmethod
+    def from_state_dict(d: dict) -> "KeyframeSupervision":
+        M, h, w = (int(v) for v in d["shape"])
+        masks = np.unpackbits(d["masks"].numpy(), axis=1, count=h * w).reshape(M, h, w).astype(bool)
+        return KeyframeSupervision(masks, d["scores"].numpy(), d["levels"].numpy(), d["scales"].numpy(),
+                                   d["embeddings"].float(), dict(d.get("seconds", {})), int(d.get("dropped", 0)))
+
+
+def build_supervision(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, generator: MaskGenerator,
+                      embedder: Embedder, rendered_depth: np.ndarray | None = None,
+                      min_points: int = 20) -> KeyframeSupervision:
+    """rgb [h, w, 3] uint8, depth [h, w] m, K [3, 3]; `rendered_depth` from the map fills depth holes
+    when measuring scales. Masks whose scale cannot be measured are dropped (and counted)."""
+    if rgb.shape[:2] != depth.shape:
+        raise ValueError(f"supervision: rgb {rgb.shape[:2]} and depth {depth.shape} differ in size")
+    t0 = time.perf_counter()
+    masks = generator.generate(rgb, depth, K)
+    t1 = time.perf_counter()
+    kept, scales = [], []
+    for m in masks:
+        try:
+            scales.append(mask_scale(m.mask, depth, K, rendered_depth, min_points))
+            mask_crop(rgb, m.mask)  # raises for masks too small to crop
+            kept.append(m)
+        except (MaskScaleError, ValueError):
+            continue
+    t2 = time.perf_counter()
+    emb = embedder.encode_masks(rgb, kept) if kept else torch.zeros(0, embedder.dim)
+    t3 = time.perf_counter()
+    h, w = depth.shape
+    return KeyframeSupervision(
+        masks=np.stack([m.mask for m in kept]) if kept else np.zeros((0, h, w), bool),
+        scores=np.array([m.score for m in kept], np.float32), levels=np.array([m.level for m in kept], np.int8),
+        scales=np.array(scales, np.float32), embeddings=emb,
+        seconds={"masks": t1 - t0, "scales": t2 - t1, "embed": t3 - t2}, dropped=len(masks) - len(kept))
+
+
+class SupervisionSet:
+    """Supervision of every keyframe of a map and the PCA space of their embeddings."""
+
+    def __init__(self, pca_dim: int = 64):
+        self.by_keyframe: dict[int, KeyframeSupervision] = {}
+        self.pca = IncrementalPCA(k=pca_dim)
+
+    def add(self, keyframe_index: int, sup: KeyframeSupervision) -> bool:
+        """Store a keyframe's supervision; returns True when the PCA basis was refitted (callers
+        then re-express stored targets with `compressed`)."""
+        self.by_keyframe[keyframe_index] = sup
+        return self.pca.add(sup.embeddings) if len(sup.embeddings) else False
+
+    def compressed(self, keyframe_index: int) -> torch.Tensor:  # [M, k] in the current PCA basis
+        if self.pca.pca is None:
+            raise RuntimeError("PCA not fitted yet: too few masks so far")
+        return self.pca.pca.transform(self.by_keyframe[keyframe_index].embeddings)
+
+    def stats(self) -> dict:
+        sups = list(self.by_keyframe.values())
+        if not sups:
+            return {"keyframes": 0}
+        per = {k: float(np.mean([s.seconds.get(k, 0.0) for s in sups])) for k in ("masks", "scales", "embed")}
+        out = {"keyframes": len(sups), "masks_per_keyframe": float(np.mean([len(s.scales) for s in sups])),
+               "dropped_masks": int(sum(s.dropped for s in sups)),
+               "seconds_per_keyframe": {k: round(v, 4) for k, v in per.items()}}
+        if self.pca.pca is not None:
+            r = self.pca.pca.explained_variance_ratio
+            out["pca"] = {"dim": self.pca.pca.dim, "fitted_on": self.pca.pca.n_fit,
+                          "explained_variance": round(float(r.sum()), 4), "refits": self.pca.version}
+        return out
+
+    def state_dict(self) -> dict:
+        return {"keyframes": {str(k): s.state_dict() for k, s in self.by_keyframe.items()},
+                "pca": self.pca.pca.state_dict() if self.pca.pca is not None else None, "pca_dim": self.pca.k,
+                "pca_version": self.pca.version}
+
+    @staticmethod
+    def from_state_dict(d: dict) -> "SupervisionSet":
+        from .pca import PCA
+
+        s = SupervisionSet(int(d.get("pca_dim", 64)))
+        for k, v in d["keyframes"].items():
+            s.by_keyframe[int(k)] = KeyframeSupervision.from_state_dict(v)
+            s.pca.raw.append(s.by_keyframe[int(k)].embeddings)
+        if d.get("pca") is not None:
+            s.pca.pca = PCA.from_state_dict(d["pca"])
+            s.pca.version = int(d.get("pca_version", 1))
+        return s
+
+
+def supervise_map(mapper, generator: MaskGenerator, embedder: Embedder, progress: bool = False) -> SupervisionSet:
+    """Compute supervision for every keyframe of `mapper` that has none yet (once per keyframe);
+    the map's rendered depth fills sensor depth holes when measuring scales."""
+    import sys
+
+    from tqdm import tqdm
+
+    if getattr(mapper, "supervision", None) is None:
+        mapper.supervision = SupervisionSet()
+    sset = mapper.supervision
+    todo = [kf for kf in mapper.keyframes if kf.index not in sset.by_keyframe]
+    for kf in tqdm(todo, desc="supervise", unit="kf", disable=not progress, file=sys.stderr):
+        w, h = kf.size
+        with torch.no_grad():
+            rendered = mapper.render(kf.K, kf.cam_to_world, w, h).depth.numpy() if len(mapper.gaussians) else None
+        rgb = (kf.rgb.numpy() * 255.0).round().clip(0, 255).astype(np.uint8)
+        sset.add(kf.index, build_supervision(rgb, kf.depth.numpy(), kf.K, generator, embedder, rendered))
+    return sset
