@@ -53,7 +53,7 @@ def plot(rows: list[dict], default_budget: int, out_png: Path) -> None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", help="scene folder (default: generate the rg synth default)")
-    ap.add_argument("--budgets", type=int, nargs="+", default=[5, 10, 20, 40])
+    ap.add_argument("--budgets", type=int, nargs="+", default=[5, 10, 15, 30])
     ap.add_argument("--real", default=str(Path(__file__).resolve().parents[2] / "shared/data/rgbd/box_toys_50"))
     ap.add_argument("--out", default="bench_out")
     ap.add_argument("--json", action="store_true")

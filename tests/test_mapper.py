@@ -59,9 +59,9 @@ def test_second_pass_barely_grows_the_map(synth_scene):
 
 
 def test_memory_bound_reports_dropped(synth_scene):
-    mapper = Mapper(MapConfig(width=160, iters_per_keyframe=2, max_gaussians=1500))
+    mapper = Mapper(MapConfig(width=160, iters_per_keyframe=2, max_gaussians=300))
     results = [mapper.add_frame(*frame_args(f)) for f in synth_scene.train[:4]]
-    assert len(mapper.gaussians) <= 1500
+    assert len(mapper.gaussians) <= 300
     assert sum(r.dropped for r in results) > 0 and mapper.stats()["dropped"] == sum(r.dropped for r in results)
     assert mapper.optim.m["means"].shape[0] == len(mapper.gaussians)  # optimiser state follows
 

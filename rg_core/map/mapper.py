@@ -148,16 +148,32 @@ class Mapper:
         c = self.cfg
         err = (out.depth - depth).abs()
         tol = torch.clamp(depth * c.depth_error_rel, min=c.depth_error_abs)
-        return valid & ((out.alpha < c.unexplained_alpha) | (err > tol))
+        # Within one seed footprint of a depth discontinuity the rendered (expected) depth blends
+        # both surfaces: the depth test is meaningless there, only coverage (alpha) counts.
+        k = 2 * c.seed_stride + 1
+        big = torch.where(valid, depth, torch.full_like(depth, 1e6))[None, None]
+        hi = torch.nn.functional.max_pool2d(torch.where(valid, depth, torch.zeros_like(depth))[None, None], k, 1, k // 2)
+        lo = -torch.nn.functional.max_pool2d(-big, k, 1, k // 2)
+        near_edge = (hi - lo)[0, 0] > tol
+        return valid & ((out.alpha < c.unexplained_alpha) | ((err > tol) & ~near_edge))
 
     def _seed(self, fr: PreparedFrame, unexplained: torch.Tensor) -> tuple[int, int]:
         """Back-project unexplained depth pixels (one per stride x stride block) as new Gaussians."""
         c = self.cfg
         s = c.seed_stride
-        off = len(self.keyframes) % s  # interleave the sampling grid between keyframes
-        grid = torch.zeros_like(unexplained)
-        grid[off::s, off::s] = True
-        vs, us = torch.nonzero(unexplained & grid, as_tuple=True)
+        # Every stride x stride block holding an unexplained pixel gets one seed, at its unexplained
+        # pixel closest to the block centre: thin regions (object rims) are never skipped.
+        vs, us = torch.nonzero(unexplained, as_tuple=True)
+        if len(vs):
+            w_blocks = (unexplained.shape[1] + s - 1) // s
+            block = (vs // s) * w_blocks + (us // s)
+            centre = (s - 1) / 2.0
+            dist = (vs % s - centre) ** 2 + (us % s - centre) ** 2
+            order = torch.argsort(block * (2 * s * s + 1) + dist.round().long(), stable=True)
+            block, vs, us = block[order], vs[order], us[order]
+            first = torch.ones_like(block, dtype=torch.bool)
+            first[1:] = block[1:] != block[:-1]
+            vs, us = vs[first], us[first]
         n_cand = len(vs)
         room = max(c.max_gaussians - len(self.gaussians), 0)
         if n_cand > room:
