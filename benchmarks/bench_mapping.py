@@ -18,7 +18,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from rg_core.config import MapConfig, SynthConfig  # noqa: E402
 from rg_core.io.captures import read_scene  # noqa: E402
-from rg_core.map.mapper import Mapper  # noqa: E402
 from rg_core.map.run import map_scene, stream_frames  # noqa: E402
 from rg_core.synth.generator import default_objects_dir, generate_scene  # noqa: E402
 
@@ -99,10 +98,6 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    from rg_core.util import stdout_to_stderr
+    from rg_core.util import run_json_script
 
-    with stdout_to_stderr() as real_stdout:  # C libraries print to stdout: keep it for the JSON line
-        sys.stdout = real_stdout
-        code = main()
-        sys.stdout = sys.__stdout__
-    sys.exit(code)
+    run_json_script(main)

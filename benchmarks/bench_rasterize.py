@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import statistics
 import sys
 import time
@@ -20,6 +19,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from rg_core.render import Camera, rasterize  # noqa: E402
+from rg_core.util import peak_rss_mb  # noqa: E402
 
 
 def make_scene(n: int, width: int, height: int, channels: int, seed: int = 0, scale: float = 1.0):
@@ -33,10 +33,6 @@ def make_scene(n: int, width: int, height: int, channels: int, seed: int = 0, sc
     f = 0.9 * width
     K = torch.tensor([[f, 0.0, width / 2 - 0.5], [0.0, f, height / 2 - 0.5], [0.0, 0.0, 1.0]])
     return (means, scales, quats, opac, feats), Camera(K, torch.eye(4), width, height, 0.05, 50.0)
-
-
-def peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def time_backend(params, cam, backend: str, repeats: int) -> dict:
@@ -112,10 +108,6 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    from rg_core.util import stdout_to_stderr
+    from rg_core.util import run_json_script
 
-    with stdout_to_stderr() as real_stdout:  # C libraries print to stdout: keep it for the JSON line
-        sys.stdout = real_stdout
-        code = main()
-        sys.stdout = sys.__stdout__
-    sys.exit(code)
+    run_json_script(main)

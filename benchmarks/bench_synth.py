@@ -45,10 +45,6 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    from rg_core.util import stdout_to_stderr
+    from rg_core.util import run_json_script
 
-    with stdout_to_stderr() as real_stdout:  # C libraries print to stdout: keep it for the JSON line
-        sys.stdout = real_stdout
-        code = main()
-        sys.stdout = sys.__stdout__
-    sys.exit(code)
+    run_json_script(main)

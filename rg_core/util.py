@@ -22,3 +22,22 @@ def stdout_to_stderr():
         real.close()
         os.dup2(saved, 1)
         os.close(saved)
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far (MB)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_json_script(main) -> None:
+    """Run a benchmark's `main()` with C-level stdout sent to stderr, so that the one JSON line it
+    prints with --json is all that reaches stdout; exit with its return code."""
+    with stdout_to_stderr() as real_stdout:
+        sys.stdout = real_stdout
+        try:
+            code = main()
+        finally:
+            sys.stdout = sys.__stdout__
+    sys.exit(code)

@@ -79,7 +79,7 @@ def test_behind_near_plane_and_beyond_far():
         one([0.0, 0.0, 1e4], [100.0, 100.0, 100.0]),  # far beyond the far plane
         one([0.0, 0.0, 3.0], [0.1, 0.1, 0.1]),
     )
-    out = check_finite(params, cam)
+    check_finite(params, cam)
     p = project_gaussians(*params[:4], cam)
     assert p.radii.tolist()[:2] == [0, 0] and int(p.radii[2]) > 0 and int(p.radii[3]) == 0 and int(p.radii[4]) == 0
 

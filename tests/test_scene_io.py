@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from conftest import need_rgbd
-from rg_core.geometry.conventions import nerf_from_opencv
 from rg_core.io.captures import read_capture, read_open3d_log, read_scene, write_open3d_log
 from rg_core.io.images import SceneError, read_depth, write_depth
 from rg_core.io.ply import read_ply, write_ply

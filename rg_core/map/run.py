@@ -1,18 +1,14 @@
 """Stream a scene's training frames through the Mapper (what `rg map` and the benchmarks run)."""
 from __future__ import annotations
 
-import resource
 import sys
 import time
 
 from ..config import MapConfig
 from ..eval.mapping import evaluate_views
 from ..io.captures import read_scene
+from ..util import peak_rss_mb
 from .mapper import Mapper
-
-
-def peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def stream_frames(mapper: Mapper, frames, progress: bool = True, desc: str = "map") -> float:
