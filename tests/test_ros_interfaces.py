@@ -1,0 +1,190 @@
+"""rg_interfaces (built from msg/ by scripts/bootstrap.sh): GroundingResult -> Ground.Response and a
+real two-node service round trip on loopback, in one process."""
+from __future__ import annotations
+
+import os
+import random
+import threading
+from pathlib import Path
+
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"   # never multicast onto the network
+os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(1, 100)))
+os.environ.setdefault("ROS_LOG_DIR", str(Path(__file__).resolve().parents[1] / ".ros_log"))
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+pytest.importorskip("rg_interfaces.srv", reason="rg_interfaces is not installed: scripts/bootstrap.sh builds it from msg/")
+
+import rclpy  # noqa: E402
+from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
+from rg_interfaces.msg import GroundedObject as GroundedObjectMsg  # noqa: E402
+from rg_interfaces.srv import Ground  # noqa: E402
+
+from rg_core.grounding.result import GroundedObject, GroundingResult  # noqa: E402
+from rg_ros import convert as cv  # noqa: E402
+from rg_ros.pointcloud import from_pointcloud2  # noqa: E402
+
+
+def rot_z(deg: float) -> np.ndarray:
+    a = np.deg2rad(deg)
+    return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])
+
+
+def make_object(n: int, center, deg: float, seed: int, confidence: float = 0.8) -> GroundedObject:
+    rng = np.random.default_rng(seed)
+    pts = (rng.normal(size=(n, 3)) * 0.05 + center).astype(np.float32)
+    return GroundedObject(
+        gaussian_ids=np.arange(n, dtype=np.int64) + seed * 1000, points=pts,
+        colors=rng.integers(0, 256, (n, 3), dtype=np.uint8),
+        aabb_min=pts.min(0).astype(np.float64), aabb_max=pts.max(0).astype(np.float64),
+        obb_center=np.asarray(center, np.float64), obb_rotation=rot_z(deg),
+        obb_extent=np.array([0.2, 0.1, 0.3]), confidence=confidence)
+
+
+def make_result(query: str = "the red mug") -> GroundingResult:
+    return GroundingResult(
+        success=True, message="1 object", query=query, target="mug", explanation="red and on the table",
+        confidence=0.75, objects=[make_object(40, [1.0, 2.0, 0.5], 90.0, 1), make_object(7, [0.0, -1.0, 0.2], 30.0, 2)],
+        timings={"reason": 0.5, "select": 0.02, "render": 0.125}, reference_view=3)
+
+
+def check_response(res, result: GroundingResult) -> None:
+    assert res.success and res.message == result.message and res.target == "mug"
+    assert res.explanation == result.explanation and res.confidence == pytest.approx(0.75)
+    assert list(res.stage_names) == ["reason", "select", "render"]
+    np.testing.assert_allclose(res.stage_seconds, [0.5, 0.02, 0.125])
+    assert len(res.objects) == 2
+    for msg, obj in zip(res.objects, result.objects):
+        assert msg.gaussian_count == len(obj.gaussian_ids) and msg.confidence == pytest.approx(obj.confidence)
+        T = cv.pose_to_matrix(msg.pose)
+        np.testing.assert_allclose(T[:3, :3], obj.obb_rotation, atol=1e-9)
+        np.testing.assert_allclose(T[:3, 3], obj.obb_center)
+        np.testing.assert_allclose([msg.size.x, msg.size.y, msg.size.z], obj.obb_extent)
+        np.testing.assert_allclose([msg.aabb_min.x, msg.aabb_min.y, msg.aabb_min.z], obj.aabb_min)
+        np.testing.assert_allclose([msg.aabb_max.x, msg.aabb_max.y, msg.aabb_max.z], obj.aabb_max)
+    assert res.cloud.header.frame_id == "map"
+    pts, cols = from_pointcloud2(res.cloud)
+    np.testing.assert_array_equal(pts, np.concatenate([o.points for o in result.objects]))
+    np.testing.assert_array_equal(cols, np.concatenate([o.colors for o in result.objects]))
+
+
+# ------------------------------------------------------------------------------ conversion
+
+def test_result_to_response_survives_serialization():
+    result = make_result()
+    res = cv.result_to_response(result, "map", 7.5)
+    assert cv.from_time(res.cloud.header.stamp) == 7.5
+    res = deserialize_message(serialize_message(res), Ground.Response)
+    check_response(res, result)
+
+
+def test_failed_result_has_empty_cloud():
+    res = cv.result_to_response(GroundingResult(success=False, message="map is empty"), "map")
+    assert not res.success and res.message == "map is empty" and len(res.objects) == 0
+    assert res.cloud.width == 0 and res.cloud.header.frame_id == "map"
+    pts, cols = from_pointcloud2(deserialize_message(serialize_message(res), Ground.Response).cloud)
+    assert pts.shape == (0, 3) and cols.shape == (0, 3)
+
+
+def test_reflected_or_broken_obb_frames():
+    obj = make_object(5, [0, 0, 0], 10.0, 3)
+    obj.obb_rotation = obj.obb_rotation * np.array([1.0, 1.0, -1.0])   # left-handed: same box
+    msg = cv.object_to_msg(obj)
+    assert isinstance(msg, GroundedObjectMsg)
+    R = cv.pose_to_matrix(msg.pose)[:3, :3]
+    np.testing.assert_allclose(R[:, :2], obj.obb_rotation[:, :2], atol=1e-9)
+    np.testing.assert_allclose(R[:, 2], -obj.obb_rotation[:, 2], atol=1e-9)
+    obj.obb_rotation = np.eye(3) * 2
+    with pytest.raises(ValueError, match="orthonormal"):
+        cv.object_to_msg(obj)
+    obj.obb_rotation = np.full((3, 3), np.nan)
+    with pytest.raises(ValueError, match="NaN"):
+        cv.object_to_msg(obj)
+
+
+def test_float32_pca_rotation_is_made_exact():
+    obj = make_object(5, [0, 0, 0], 37.0, 4)
+    obj.obb_rotation = obj.obb_rotation.astype(np.float32) + 1e-4   # what a PCA in float32 might give
+    q = cv.object_to_msg(obj).pose.orientation
+    assert abs(np.linalg.norm([q.x, q.y, q.z, q.w]) - 1) < 1e-12
+
+
+# ------------------------------------------------------------------------- service round trip
+
+@pytest.fixture
+def ros_context():
+    """A fresh rclpy Context per test; shut down even if the test fails."""
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    ctx.try_shutdown()
+
+
+def serve(ctx, handler):
+    """Server and client nodes spun by a MultiThreadedExecutor in a daemon thread."""
+    server = rclpy.create_node("rg_test_server", context=ctx)
+    client_node = rclpy.create_node("rg_test_client", context=ctx)
+    server.create_service(Ground, "ground", handler)
+    client = client_node.create_client(Ground, "ground")
+    executor = MultiThreadedExecutor(context=ctx)
+    executor.add_node(server)
+    executor.add_node(client_node)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+
+    def close():
+        executor.shutdown(timeout_sec=5)
+        client_node.destroy_client(client)
+        server.destroy_node()
+        client_node.destroy_node()
+        thread.join(timeout=5)
+
+    return client, close
+
+
+def ground_handler(request, response):
+    """What the node will do, minus the map: parse the request, answer with a converted result."""
+    try:
+        mode = cv.parse_mode(request.mode)
+    except ValueError as e:
+        return cv.result_to_response(GroundingResult(success=False, message=str(e), query=request.query),
+                                     "map", response=response)
+    result = make_result(request.query)
+    result.explanation = f"{mode}: {result.explanation}"
+    if request.max_results:
+        result.objects = result.objects[: request.max_results]
+    return cv.result_to_response(result, "map", 42.0, response=response)
+
+
+def test_ground_service_round_trip(ros_context):
+    client, close = serve(ros_context, ground_handler)
+    try:
+        assert client.wait_for_service(timeout_sec=10), "Ground service not discovered on loopback"
+        res = client.call(Ground.Request(query="the red mug", mode=""), timeout_sec=10)
+        assert res is not None, "no reply within 10 s"
+        result = make_result()
+        result.explanation = "auto: " + result.explanation
+        check_response(res, result)
+        assert cv.from_time(res.cloud.header.stamp) == 42.0
+
+        res = client.call(Ground.Request(query="mug", mode="implicit", max_results=1), timeout_sec=10)
+        assert res.success and len(res.objects) == 1 and res.explanation.startswith("implicit: ")
+        assert res.cloud.width == 40
+
+        res = client.call(Ground.Request(query="mug", mode="telepathic"), timeout_sec=10)
+        assert not res.success and "'telepathic'" in res.message and len(res.objects) == 0
+    finally:
+        close()
+
+
+def test_fresh_context_per_test_also_works(ros_context):
+    """A second test with its own context: nothing of the first one's graph leaks into it."""
+    client, close = serve(ros_context, ground_handler)
+    try:
+        assert client.wait_for_service(timeout_sec=10)
+        res = client.call(Ground.Request(query="x"), timeout_sec=10)
+        assert res is not None and res.success and len(res.objects) == 2
+    finally:
+        close()
