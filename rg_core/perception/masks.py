@@ -50,7 +50,7 @@ def register(name: str, factory: Callable[..., MaskGenerator]) -> None:
 
 
 def make_mask_generator(name: str, **kwargs) -> MaskGenerator:
-    from . import masks_rgbd  # noqa: F401 - built-in backends register on import
+    from . import masks_rgbd, masks_sam  # noqa: F401 - built-in backends register on import
 
     if name not in _REGISTRY:
         raise ValueError(f"unknown mask generator {name!r}; known: {sorted(_REGISTRY)}")
