@@ -1,14 +1,25 @@
 """SAM backends: "sam_onnx" through its real loading and inference path on a small random model with
 SAM's exact ONNX signatures (the test builds and exports it), its post-processing on hand-made inputs,
 and the errors of both backends."""
+import importlib.util
+
 import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
 
 from rg_core.perception.masks import BackendError, Mask, make_mask_generator
-from rg_core.perception.masks_sam import (SamOnnxGenerator, box_nms, mask_boxes, mask_nms, point_grid, preprocess,
-                                          records_to_masks, resized_shape, stability_score)
+from rg_core.perception.masks_sam import (
+    SamOnnxGenerator,
+    box_nms,
+    mask_boxes,
+    mask_nms,
+    point_grid,
+    preprocess,
+    records_to_masks,
+    resized_shape,
+    stability_score,
+)
 
 
 class TinyEncoder(torch.nn.Module):
@@ -103,8 +114,8 @@ def _image(h=96, w=128):
     return img
 
 
-LOOSE = dict(points_per_side=8, points_per_batch=16, pred_iou_thresh=0.0, stability_score_thresh=0.0,
-             min_area=0.0, max_masks=1000)
+LOOSE = {"points_per_side": 8, "points_per_batch": 16, "pred_iou_thresh": 0.0, "stability_score_thresh": 0.0,
+         "min_area": 0.0, "max_masks": 1000}
 
 
 def _iou(a, b):
@@ -143,7 +154,7 @@ def test_sam_onnx_generates_valid_deduplicated_masks(sam_files):
 
 
 def test_sam_onnx_thresholds_filter(sam_files):
-    kw = dict(encoder_path=str(sam_files / "encoder.onnx"), decoder_path=str(sam_files / "decoder.onnx"))
+    kw = {"encoder_path": str(sam_files / "encoder.onnx"), "decoder_path": str(sam_files / "decoder.onnx")}
     img = _image()
     # Nothing is suppressed: the counts are those of the filters. A 5 x 5 grid keeps the test short.
     no_nms = {**LOOSE, "nms_iou": 1.0, "points_per_side": 5}
@@ -214,7 +225,8 @@ def test_records_to_masks_levels():
     def rec(area, iou, pt):
         seg = np.zeros((10, 10), bool)
         seg.flat[:area] = True
-        return dict(segmentation=seg, area=area, predicted_iou=iou, stability_score=0.97, point_coords=[pt])
+        return {"segmentation": seg, "area": area, "predicted_iou": iou, "stability_score": 0.97,
+                "point_coords": [pt]}
 
     recs = [rec(30, 0.9, [1, 1]), rec(5, 0.95, [1, 1]), rec(60, 1.02, [1, 1]), rec(80, 0.9, [5, 5])]
     out = records_to_masks(recs)
@@ -236,7 +248,7 @@ def test_errors(sam_files, tmp_path):
         gen.generate(np.zeros((8, 8, 3), np.float32))
     with pytest.raises(ValueError, match="rgb must be uint8"):
         gen.generate(np.zeros((8, 8), np.uint8))
-    missing = "segment_anything" if __import__("importlib").util.find_spec("segment_anything") is None else "checkpoint"
+    missing = "segment_anything" if importlib.util.find_spec("segment_anything") is None else "checkpoint"
     with pytest.raises(BackendError, match=missing):
         make_mask_generator("sam", checkpoint=str(tmp_path / "sam_vit_h.pth"))
     with pytest.raises(BackendError, match="mobile_sam|checkpoint"):

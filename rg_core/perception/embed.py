@@ -211,3 +211,4 @@ class OnnxClipEmbedder(Embedder):
 
 
 _REGISTRY["onnx_clip"] = OnnxClipEmbedder
+_REGISTRY["open_clip"] = lambda **kw: importlib.import_module(".embed_openclip", __package__).OpenClipEmbedder(**kw)
