@@ -75,12 +75,13 @@ class TinyDecoder(torch.nn.Module):
         return F.interpolate(masks, size=(hw[0], hw[1]), mode="bilinear", align_corners=False)
 
 
-def _export_decoder(dec, path, dynamic_batch):
-    B = 2 if dynamic_batch else 1
+def _export_decoder(dec, path, batch=None):
+    """batch None: a dynamic batch axis; an int: exported with that fixed batch."""
+    B = batch or 2
     args = (torch.randn(1, 256, 64, 64), torch.rand(B, 2, 2) * 1000, torch.tensor([[1.0, -1.0]] * B),
             torch.zeros(1, 1, 256, 256), torch.zeros(1), torch.tensor([96.0, 128.0]))
     axes = {"point_coords": {1: "n"}, "point_labels": {1: "n"}, "masks": {2: "h", 3: "w"}}
-    if dynamic_batch:
+    if batch is None:
         for k in ("point_coords", "point_labels", "masks", "iou_predictions", "low_res_masks"):
             axes.setdefault(k, {})[0] = "b"
     torch.onnx.export(dec, args, str(path), input_names=["image_embeddings", "point_coords", "point_labels",
@@ -96,11 +97,11 @@ def sam_files(tmp_path_factory):
     enc, dec = TinyEncoder().eval(), TinyDecoder().eval()
     torch.onnx.export(enc, (torch.randn(1, 3, 1024, 1024),), str(d / "encoder.onnx"), input_names=["image"],
                       output_names=["image_embeddings"], opset_version=17, dynamo=False)
-    _export_decoder(dec, d / "decoder.onnx", dynamic_batch=True)
-    # Same weights, fixed batch of 1 and the extra single-mask output first: must give the same masks.
+    _export_decoder(dec, d / "decoder.onnx")
+    # Same weights, a fixed batch of 5 and the extra single-mask output first: must give the same masks.
     dec4 = TinyDecoder(single_token=True).eval()
     dec4.load_state_dict(dec.state_dict())
-    _export_decoder(dec4, d / "decoder_b1_k4.onnx", dynamic_batch=False)
+    _export_decoder(dec4, d / "decoder_b5_k4.onnx", batch=5)
     return d
 
 
@@ -143,11 +144,12 @@ def test_sam_onnx_generates_valid_deduplicated_masks(sam_files):
     capped = make_mask_generator("sam_onnx", encoder_path=str(sam_files / "encoder.onnx"),
                                  decoder_path=str(sam_files / "decoder.onnx"), **{**LOOSE, "max_masks": 3})
     assert len(capped.generate(img)) == 3
-    # A decoder with a fixed batch of 1 and the single-mask output first gives the same result.
-    b1 = make_mask_generator("sam_onnx", encoder_path=str(sam_files / "encoder.onnx"),
-                             decoder_path=str(sam_files / "decoder_b1_k4.onnx"), **LOOSE)
-    assert b1.batch == 1
-    again = b1.generate(img)
+    # A decoder with a fixed batch of 5 (64 prompts: the last call is padded) and the single-mask
+    # output first gives the same result.
+    b5 = make_mask_generator("sam_onnx", encoder_path=str(sam_files / "encoder.onnx"),
+                             decoder_path=str(sam_files / "decoder_b5_k4.onnx"), **LOOSE)
+    assert b5.batch == 5
+    again = b5.generate(img)
     assert len(again) == len(out)
     for a, b in zip(out, again):
         assert np.array_equal(a.mask, b.mask) and a.level == b.level and a.score == pytest.approx(b.score, abs=1e-6)

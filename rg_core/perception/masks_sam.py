@@ -127,7 +127,7 @@ class SamAutoConfig:
     """SamAutomaticMaskGenerator's defaults where it has them."""
 
     points_per_side: int = 32
-    points_per_batch: int = 64      # prompts per decoder call (1 when the decoder's batch axis is fixed)
+    points_per_batch: int = 64      # prompts per decoder call (a decoder with a fixed batch axis sets it)
     pred_iou_thresh: float = 0.88
     stability_score_thresh: float = 0.95
     stability_score_offset: float = 1.0
@@ -170,7 +170,8 @@ class SamOnnxGenerator(MaskGenerator):
                                f"SamOnnxModel signature {list(DECODER_INPUTS)}, has {sorted(names)}")
         self.decoder_inputs = set(names)
         b = names["point_coords"].shape[0]
-        self.batch = self.cfg.points_per_batch if not isinstance(b, int) else max(1, b)
+        self.fixed_batch = b if isinstance(b, int) and b > 0 else None  # exported without a batch axis
+        self.batch = self.fixed_batch or self.cfg.points_per_batch
         outs = [o.name for o in self.decoder.get_outputs()]
         self.out_idx = (outs.index("masks") if "masks" in outs else 0,
                         outs.index("iou_predictions") if "iou_predictions" in outs else 1)
@@ -186,16 +187,18 @@ class SamOnnxGenerator(MaskGenerator):
         rh, rw = resized_shape(h, w)
         coords = np.asarray(points, np.float32) * np.array([rw / w, rh / h], np.float32)  # [B, 2] 1024 frame
         B = len(coords)
+        if self.fixed_batch and B < self.fixed_batch:  # a fixed batch axis: pad with the last point
+            coords = np.concatenate([coords, np.repeat(coords[-1:], self.fixed_batch - B, 0)])
         feed = {
             "image_embeddings": emb,
-            "point_coords": np.concatenate([coords[:, None], np.zeros((B, 1, 2), np.float32)], 1),  # [B, 2, 2]
-            "point_labels": np.tile(np.array([[1.0, -1.0]], np.float32), (B, 1)),                # + padding point
+            "point_coords": np.concatenate([coords[:, None], np.zeros((len(coords), 1, 2), np.float32)], 1),
+            "point_labels": np.tile(np.array([[1.0, -1.0]], np.float32), (len(coords), 1)),  # + padding point
             "mask_input": np.zeros((1, 1, 256, 256), np.float32),
             "has_mask_input": np.zeros(1, np.float32),
             "orig_im_size": np.array([h, w], np.float32),
         }
         outs = self.decoder.run(None, {k: v for k, v in feed.items() if k in self.decoder_inputs})
-        logits, iou = outs[self.out_idx[0]], outs[self.out_idx[1]]
+        logits, iou = outs[self.out_idx[0]][:B], outs[self.out_idx[1]][:B]  # [B, K, H, W], [B, K]
         if logits.shape[1] == 4:  # single-mask token first (return_single_mask=False export): drop it
             logits, iou = logits[:, 1:], iou[:, 1:]
         if logits.shape[1] != 3 or logits.shape[2:] != (h, w) or iou.shape != logits.shape[:2]:
