@@ -121,12 +121,93 @@ class MapConfig:
 
 
 @dataclass
+class FieldConfig:
+    """Scale-hierarchical feature field: latent per Gaussian, language and instance mappers."""
+
+    latent_dim: int = 32
+    """Latent feature f per Gaussian, rendered with the same alpha blending as colour."""
+    language_dim: int = 64
+    """Output of F_l(s, f): the PCA space of the mask embeddings."""
+    instance_dim: int = 16
+    """Output of F_g(s, f): unit-normalised instance feature."""
+    hidden: int = 64
+    """Width of the two hidden layers of each mapper."""
+    scale_frequencies: int = 4
+    """Sin/cos frequencies of the normalised scale fed to the mappers (sharp steps in scale)."""
+    scale_knots: int = 33
+    """Knots of the monotone quantile transform of mask scales (fitted on supervision scales)."""
+    rays_per_step: int = 256
+    """Pixels sampled from the rendered view per training step."""
+    mask_ray_fraction: float = 0.75
+    """Share of the rays drawn inside masks, equally per mask (small objects get rays too); the
+    rest uniformly over the image."""
+    scales_per_step: int = 4
+    """Scales at which the contrastive loss is evaluated per step."""
+    huber_delta: float = 0.1
+    """Huber delta of the language loss (PCA-space units)."""
+    margin: float = 1.0
+    """Contrastive margin lambda: pairs not sharing a group are pushed at least this far apart."""
+    lambda_language: float = 1.0
+    """Weight of L_lang."""
+    lambda_instance: float = 0.1
+    """Weight of L_in."""
+    lr_latents: float = 0.01
+    """Adam learning rate of the per-Gaussian latents (only rows seen by the step move)."""
+    lr_mappers: float = 0.002
+    """Adam learning rate of the two mappers."""
+    init_std: float = 0.1
+    """Std dev of the random latents of a map that had none."""
+    init_neighbours: int = 3
+    """New Gaussians start from the mean latent of this many nearest existing Gaussians."""
+    window: int = 8
+    """Recent supervised keyframes trained together ..."""
+    revisit: float = 0.2
+    """... and the probability of a step on an older one instead (0: strictly the window)."""
+    train_width: int = 160
+    """Training renders at most this wide (cheaper steps); masks are resampled to it."""
+    seconds: float = 10.0
+    """Default training budget of `train()` (see benchmarks/bench_field.py)."""
+    seed: int = 0
+    """Random seed of latents, mappers and ray sampling."""
+
+
+@dataclass
+class GroundConfig:
+    """Grounding queries to Gaussian groups (`rg ground`, the node's /ground service)."""
+
+    vocabulary: list[str] = field(default_factory=list)
+    """Extra object names the reasoner may choose from (the scene's own names are added by callers)."""
+    support_vocabulary: bool = True
+    """Also offer built-in household names that some mask embedding of the map is nearest to."""
+    min_mask_similarity: float = 0.3
+    """A target whose best mask embedding in the map is less similar than this is absent (m-cosine)."""
+    max_cluster_points: int = 4000
+    """HDBSCAN sees at most this many Gaussians (the rest join the nearest centre); 0 = all, as the paper."""
+    min_cluster_size: int = 10
+    """HDBSCAN min_cluster_size (paper: 10)."""
+    cluster_eps: float = 0.01
+    """HDBSCAN cluster_selection_epsilon (paper: 0.01)."""
+    multi_instance_ratio: float = 0.9
+    """With max_results > 1, other groups whose relevancy reaches this share of the best one are returned."""
+    mask_alpha: float = 0.5
+    """Amodal mask: accumulated alpha of the group alone above this; visible: the group's share of the
+    blending weight above 0.5 where the full render's alpha is above this."""
+    outlier_mads: float = 3.0
+    """Group Gaussians farther than this many robust spreads from the group's median are dropped."""
+    max_query_chars: int = 1000
+    """Longer queries are rejected."""
+    seed: int = 0
+
+
+@dataclass
 class RGConfig:
     """Top level of a ReasonGrounder configuration file."""
 
     synth: SynthConfig = field(default_factory=SynthConfig)
     demo: DemoConfig = field(default_factory=DemoConfig)
     map: MapConfig = field(default_factory=MapConfig)
+    field: FieldConfig = field(default_factory=FieldConfig)
+    ground: GroundConfig = field(default_factory=GroundConfig)
 
 
 def _type_name(tp: Any) -> str:

@@ -1,7 +1,8 @@
 """Map files: one versioned file (torch's safe `weights_only` format: tensors, numbers, strings).
 
 Holds the Gaussians, the configuration and, per keyframe, pose, intrinsics, stamp and the
-working-resolution image (uint8) and depth (float32 m), which the feature and grounding stages use.
+working-resolution image (uint8) and depth (float32 m), which the feature and grounding stages use;
+since version 2 also the feature field (`mapper.field`: latents, mappers, scale transform, config).
 """
 from __future__ import annotations
 
@@ -14,7 +15,8 @@ from ..config import ConfigError, MapConfig, config_from_dict, config_to_dict
 from .mapper import Keyframe, Mapper
 
 FORMAT = "rg-map"
-VERSION = 1
+VERSION = 2
+READABLE = (1, 2)  # version 1: no "field" entry (read as None)
 
 
 class MapFileError(ValueError):
@@ -39,6 +41,8 @@ def save_map(mapper: Mapper, path: str | Path) -> Path:
         "stats": {"frames": mapper.frames_seen, **{k: int(v) for k, v in mapper.totals.items()}},
         # Masks, scales, embeddings per keyframe and the PCA basis (None until computed).
         "supervision": mapper.supervision.state_dict() if mapper.supervision is not None else None,
+        # The feature field (rg_core.field.FeatureField attaches itself as mapper.field); None until built.
+        "field": mapper.field.state_dict() if getattr(mapper, "field", None) is not None else None,
     }
     tmp = path.with_name(path.name + ".tmp")
     torch.save(data, tmp)
@@ -56,8 +60,9 @@ def load_map(path: str | Path) -> Mapper:
         raise MapFileError(f"{path}: not a readable map file ({exc.__class__.__name__}: {exc})") from exc
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise MapFileError(f"{path}: not an {FORMAT} file")
-    if data.get("version") != VERSION:
-        raise MapFileError(f"{path}: map format version {data.get('version')}, this build reads version {VERSION}")
+    if data.get("version") not in READABLE:
+        raise MapFileError(f"{path}: map format version {data.get('version')}, this build reads versions "
+                           f"{', '.join(map(str, READABLE))}")
     try:
         cfg = config_from_dict(data["config"], MapConfig)
     except ConfigError as exc:
@@ -84,4 +89,12 @@ def load_map(path: str | Path) -> Mapper:
         mapper.totals[k] = int(stats.get(k, 0))
     if mapper.keyframes:
         mapper.last_stamp = max(kf.stamp for kf in mapper.keyframes)
+    mapper.field = None  # after the stats: the field records the map's prune count
+    if data.get("field") is not None:
+        from ..field import FeatureField
+
+        try:
+            FeatureField.from_state_dict(mapper, data["field"])  # attaches itself as mapper.field
+        except (KeyError, ValueError, TypeError, RuntimeError, ConfigError) as exc:
+            raise MapFileError(f"{path}: bad feature field data ({exc})") from exc
     return mapper

@@ -1,0 +1,369 @@
+"""FeatureField: a latent f in R^latent_dim per Gaussian of a Mapper's map, rendered with colour and
+depth in one rasterizer call, decoded by F_l(s, f) (language, PCA space) and F_g(s, f) (instance).
+
+Geometry and colour stay frozen: only latents and the two mappers train. Training is incremental
+and safe to call from a background thread between map updates: each step first follows the map
+(new Gaussians start from their nearest neighbours' latents; pruning re-associates by centre),
+the supervision (new keyframes; scale transform refits) and the PCA basis (a refit re-expresses
+the language mapper's output layer exactly in the new basis).
+"""
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..config import FieldConfig
+from ..geometry.conventions import scale_intrinsics
+from ..render import rasterize
+from .losses import instance_loss, language_loss, language_targets, shares_group
+from .mappers import ScaleMLP
+from .scale import QuantileScale
+
+_MOVED = 1e-3  # m: on re-association after pruning, a Gaussian this close to an old one is that one
+
+
+@dataclass
+class FieldRender:
+    latent: torch.Tensor   # [h, w, latent_dim] alpha-blended latents (no background)
+    rgb: torch.Tensor      # [h, w, 3] (no background)
+    depth: torch.Tensor    # [h, w] expected depth (m), 0 where nothing was hit
+    alpha: torch.Tensor    # [h, w]
+
+
+class FeatureField:
+    """Attaches itself as `mapper.field`, so `save_map` stores it with the map."""
+
+    def __init__(self, mapper, cfg: FieldConfig | None = None):
+        self.mapper, self.cfg = mapper, cfg or FieldConfig()
+        c = self.cfg
+        if c.latent_dim < 1 or c.rays_per_step < 2 or c.scales_per_step < 1 or c.train_width < 8:
+            raise ValueError(f"FieldConfig: latent_dim >= 1, rays_per_step >= 2, scales_per_step >= 1 and "
+                             f"train_width >= 8 needed, got {c}")
+        self.lock = threading.RLock()  # one step, render or resize at a time
+        self._rng = torch.Generator().manual_seed(c.seed)
+        with torch.random.fork_rng():
+            torch.manual_seed(c.seed)
+            self.language_mlp = ScaleMLP(c.latent_dim, c.language_dim, c.hidden, c.scale_frequencies)
+            self.instance_mlp = ScaleMLP(c.latent_dim, c.instance_dim, c.hidden, c.scale_frequencies, unit=True)
+        self.mlp_optim = torch.optim.Adam(list(self.language_mlp.parameters()) + list(self.instance_mlp.parameters()),
+                                          lr=c.lr_mappers)
+        n = len(mapper.gaussians)
+        self.latents = torch.randn(n, c.latent_dim, generator=self._rng) * c.init_std  # [N, D]
+        self._m, self._v = torch.zeros(n, c.latent_dim), torch.zeros(n, c.latent_dim)
+        self._t = torch.zeros(n, dtype=torch.long)  # per-row Adam step count (rows update sparsely)
+        self._means = mapper.gaussians.means.detach().clone()  # centres at the last sync
+        self._pruned = self._pruned_count()
+        self.scale_tf: QuantileScale | None = None
+        self._pca = None  # (version, mean, components) the language output is expressed in
+        self._masks: dict[int, tuple] = {}  # kf -> (id(sup), masks [M, th tw], scales [M], ray weights [th tw])
+        self.steps = 0
+        self.seconds = 0.0
+        mapper.field = self
+
+    # ---------------------------------------------------------------------------- map following
+
+    def _pruned_count(self):
+        return getattr(self.mapper, "totals", {}).get("pruned")
+
+    def _neighbour_latents(self, points: torch.Tensor) -> torch.Tensor:  # [Q, 3] -> [Q, D]
+        from scipy.spatial import cKDTree
+
+        k = min(self.cfg.init_neighbours, len(self._means))
+        if k < 1:
+            return torch.randn(len(points), self.cfg.latent_dim, generator=self._rng) * self.cfg.init_std
+        _, idx = cKDTree(self._means.double().numpy()).query(points.double().numpy(), k=k)
+        idx = torch.from_numpy(np.asarray(idx, np.int64).reshape(len(points), k))
+        return self.latents[idx].mean(1)
+
+    @torch.no_grad()
+    def sync(self) -> int:
+        """Follow the map's Gaussians; returns how many latents were (re)initialised. Appends keep
+        every old row; after pruning, rows are re-associated with the old Gaussian at the same centre."""
+        with self.lock:
+            g = self.mapper.gaussians
+            N, old = len(g), len(self.latents)
+            pruned = self._pruned_count()
+            means = g.means.detach()
+            if N == old and pruned == self._pruned and pruned is not None:
+                self._means = means.clone()
+                return 0
+            D = self.cfg.latent_dim
+            if pruned is not None and pruned == self._pruned and N > old:  # append-only: rows kept
+                new = self._neighbour_latents(means[old:])
+                self.latents = torch.cat([self.latents, new])
+                z = torch.zeros(N - old, D)
+                self._m, self._v = torch.cat([self._m, z]), torch.cat([self._v, z])
+                self._t = torch.cat([self._t, torch.zeros(N - old, dtype=torch.long)])
+                fresh = N - old
+            else:  # pruned (rows shifted) or unknown history: re-associate by centre
+                from scipy.spatial import cKDTree
+
+                lat, m, v, t = (torch.zeros(N, D), torch.zeros(N, D), torch.zeros(N, D),
+                                torch.zeros(N, dtype=torch.long))
+                fresh = N
+                if old and N:
+                    d, j = cKDTree(self._means.double().numpy()).query(means.double().numpy(), k=1)
+                    same = torch.from_numpy(d <= _MOVED)
+                    j = torch.from_numpy(np.asarray(j, np.int64))
+                    lat[same], m[same], v[same], t[same] = (self.latents[j[same]], self._m[j[same]],
+                                                            self._v[j[same]], self._t[j[same]])
+                    fresh = int((~same).sum())
+                    if fresh:
+                        lat[~same] = self._neighbour_latents(means[~same])
+                elif N:
+                    lat = self._neighbour_latents(means)
+                self.latents, self._m, self._v, self._t = lat, m, v, t
+            self._means, self._pruned = means.clone(), pruned
+            return fresh
+
+    # ---------------------------------------------------------------------------- supervision
+
+    def _supervised(self) -> list:
+        sset = getattr(self.mapper, "supervision", None)
+        if sset is None:
+            return []
+        return [kf for kf in self.mapper.keyframes
+                if kf.index in sset.by_keyframe and len(sset.by_keyframe[kf.index].scales)]
+
+    def _refresh_supervision(self) -> str | None:
+        """Refit the scale transform when supervision grew 1.5x; follow a PCA refit. Returns why
+        training cannot run, or None."""
+        sset = getattr(self.mapper, "supervision", None)
+        kfs = self._supervised()
+        if not kfs:
+            return "no keyframe has supervision masks yet"
+        if sset.pca.pca is None:
+            return "PCA of the mask embeddings not fitted yet (too few masks)"
+        scales = np.concatenate([sset.by_keyframe[kf.index].scales for kf in kfs])
+        if self.scale_tf is None or len(scales) >= 1.5 * self.scale_tf.n_fit:
+            self.scale_tf = QuantileScale.fit(torch.from_numpy(scales.astype(np.float64)), self.cfg.scale_knots)
+        self._follow_pca(sset.pca)
+        return None
+
+    @torch.no_grad()
+    def _follow_pca(self, ipca) -> None:
+        """Re-express the language output layer in a refitted basis: z' = C'(C^T z + mu - mu')."""
+        pca = ipca.pca
+        if pca.dim != self.cfg.language_dim:
+            raise ValueError(f"field: PCA has {pca.dim} dims, FieldConfig.language_dim is {self.cfg.language_dim}")
+        if self._pca is not None and self._pca[0] != ipca.version:
+            _, mean, comps = self._pca
+            last = self.language_mlp.net[-1]
+            A = pca.components @ comps.T  # [k', k]
+            last.weight.copy_(A @ last.weight)
+            last.bias.copy_(A @ last.bias + pca.components @ (mean - pca.mean))
+        self._pca = (ipca.version, pca.mean.clone(), pca.components.clone())
+
+    def _train_view(self, kf):
+        """Camera size, K and masks [M, th*tw] (cached) of a keyframe at the training resolution."""
+        sup = self.mapper.supervision.by_keyframe[kf.index]
+        w, h = kf.size
+        tw = min(self.cfg.train_width, w)
+        th = max(1, int(round(h * tw / w)))
+        K = scale_intrinsics(kf.K, tw / w, th / h)
+        hit = self._masks.get(kf.index)
+        if hit is None or hit[0] != id(sup):
+            masks = torch.from_numpy(np.asarray(sup.masks, bool))
+            if masks.shape[1:] != (h, w):
+                raise ValueError(f"field: keyframe {kf.index} masks are {list(masks.shape[1:])}, image is {[h, w]}")
+            rows = ((torch.arange(th) + 0.5) * h / th).long().clamp(max=h - 1)  # nearest resampling
+            cols = ((torch.arange(tw) + 0.5) * w / tw).long().clamp(max=w - 1)
+            masks = masks[:, rows][:, :, cols].reshape(len(masks), th * tw)
+            scales = torch.from_numpy(np.asarray(sup.scales, np.float32))
+            # Ray weights: mask_ray_fraction spread equally over the masks (each uniformly over
+            # its pixels), the rest uniform over the image; drawn without replacement.
+            a = min(max(self.cfg.mask_ray_fraction, 0.0), 1.0) if len(masks) else 0.0
+            mf = masks.float()
+            weights = (1 - a) / (th * tw) + a * (mf / mf.sum(1, keepdim=True).clamp(min=1)).sum(0) / max(len(masks), 1)
+            hit = (id(sup), masks, scales, weights)
+            self._masks[kf.index] = hit
+        return K, tw, th, hit[1], hit[2], hit[3]
+
+    def _sample_keyframe(self, kfs: list):
+        c = self.cfg
+        n = len(kfs)
+        if n > c.window and float(torch.rand(1, generator=self._rng)) < c.revisit:
+            return kfs[int(torch.randint(0, n - c.window, (1,), generator=self._rng))]
+        lo = max(0, n - c.window)
+        return kfs[int(torch.randint(lo, n, (1,), generator=self._rng))]
+
+    def _sample_scale(self, scales: torch.Tensor) -> float:
+        """GARField's interval sampling: a mask scale of the view, moved up towards the next one."""
+        u = torch.unique(scales[torch.isfinite(scales)]).double()
+        if len(u) == 0:
+            return 0.0
+        j = int(torch.randint(0, len(u), (1,), generator=self._rng))
+        hi = u[j + 1] if j + 1 < len(u) else u[j] * 1.5
+        return float(u[j] + float(torch.rand(1, generator=self._rng)) * (hi - u[j]))
+
+    # ---------------------------------------------------------------------------- training
+
+    def train_step(self) -> dict:
+        """One step on one supervised keyframe. Returns the losses, or {"skipped": reason} (a no-op)."""
+        with self.lock:
+            t0 = time.perf_counter()
+            self.sync()
+            why = self._refresh_supervision()
+            if why is not None:
+                return {"skipped": why}
+            c = self.cfg
+            kf = self._sample_keyframe(self._supervised())
+            K, tw, th, masks, scales, weights = self._train_view(kf)
+            targets = self.mapper.supervision.compressed(kf.index)  # [M, 64] in the current basis
+            lat = self.latents.clone().requires_grad_(True)
+            out = self._render(lat, K, kf.cam_to_world, tw, th)
+            P = min(c.rays_per_step, tw * th)
+            P = min(P, int((weights > 0).sum()))
+            pix = torch.multinomial(weights, P, replacement=False, generator=self._rng)
+            f = out.channels[..., 3:].reshape(-1, c.latent_dim)[pix]  # [P, D]
+            members = masks[:, pix].T  # [P, M]
+            # Scales of this step: each mask's own (L_lang of mask i at s_i; at most 16) and
+            # `scales_per_step` interval samples (GARField), shared by both losses.
+            own = torch.unique(scales)
+            if len(own) > 16:
+                own = own[torch.randperm(len(own), generator=self._rng)[:16]]
+            sampled = [self._sample_scale(scales) for _ in range(c.scales_per_step)]
+            lang_s = torch.cat([own.double(), torch.tensor(sampled, dtype=torch.float64)])
+            tgt = torch.cat([language_targets(members, scales, targets, float(s)) for s in lang_s])  # [S P, 64]
+            u = self.scale_tf(lang_s).repeat_interleave(P)  # [S P]
+            l_lang = language_loss(self.language_mlp(f.repeat(len(lang_s), 1), u), tgt, c.huber_delta)
+            l_in = f.sum() * 0.0
+            for s in sampled:
+                feat = self.instance_mlp(f, self.scale_tf(s))
+                l_in = l_in + instance_loss(feat, shares_group(members, scales, s), c.margin) / c.scales_per_step
+            loss = c.lambda_language * l_lang + c.lambda_instance * l_in
+            self.mlp_optim.zero_grad(set_to_none=True)
+            loss.backward()
+            for p in list(self.language_mlp.parameters()) + list(self.instance_mlp.parameters()):
+                if p.grad is not None:
+                    p.grad.nan_to_num_(0.0, 0.0, 0.0)
+            self.mlp_optim.step()
+            seen = self._latent_step(lat.grad)
+            self.steps += 1
+            dt = time.perf_counter() - t0
+            self.seconds += dt
+            return {"loss": float(loss.detach()), "language": float(l_lang.detach()), "instance": float(l_in.detach()), "keyframe": kf.index,
+                    "gaussians_updated": seen, "seconds": dt}
+
+    @torch.no_grad()
+    def _latent_step(self, grad: torch.Tensor | None) -> int:
+        """Adam on the rows with a gradient only: Gaussians the step did not see stay bitwise unchanged."""
+        if grad is None:
+            return 0
+        grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0)
+        rows = torch.nonzero((grad != 0).any(1)).squeeze(1)
+        if len(rows) == 0:
+            return 0
+        b1, b2, eps = 0.9, 0.999, 1e-15
+        g = grad[rows]
+        self._t[rows] += 1
+        t = self._t[rows].double()[:, None]
+        m = self._m[rows].mul_(b1).add_(g, alpha=1 - b1)
+        v = self._v[rows].mul_(b2).addcmul_(g, g, value=1 - b2)
+        self._m[rows], self._v[rows] = m, v
+        upd = (m / (1 - b1 ** t).float()) / ((v / (1 - b2 ** t).float()).sqrt() + eps)
+        self.latents[rows] = self.latents[rows] - self.cfg.lr_latents * upd
+        return int(len(rows))
+
+    def train(self, seconds: float | None = None, iters: int | None = None, progress: bool = False) -> dict:
+        """Train until `seconds` (default cfg.seconds when neither is given) or `iters` runs out,
+        whichever first. Returns steps, seconds and mean losses (or the reason nothing ran)."""
+        import sys
+
+        from tqdm import tqdm
+
+        if seconds is None and iters is None:
+            seconds = self.cfg.seconds
+        t0 = time.perf_counter()
+        hist, bar = [], tqdm(total=iters, desc="field", unit="it", disable=not progress, file=sys.stderr)
+        while (iters is None or len(hist) < iters) and (seconds is None or time.perf_counter() - t0 < seconds):
+            r = self.train_step()
+            if "skipped" in r:
+                bar.close()
+                return {"steps": len(hist), "seconds": time.perf_counter() - t0, "skipped": r["skipped"]}
+            hist.append(r)
+            bar.update(1)
+            bar.set_postfix(loss=f"{r['loss']:.4f}")
+        bar.close()
+        mean = lambda k: float(np.mean([h[k] for h in hist])) if hist else float("nan")  # noqa: E731
+        return {"steps": len(hist), "seconds": time.perf_counter() - t0, "loss": mean("loss"),
+                "language": mean("language"), "instance": mean("instance")}
+
+    # ---------------------------------------------------------------------------- queries
+
+    def _render(self, latents: torch.Tensor, K, c2w, w: int, h: int):
+        g = self.mapper.gaussians
+        ch = torch.cat([g.colors.detach(), latents], 1)  # [N, 3 + D]: colour and latent in one call
+        return rasterize(g.means.detach(), g.scales.detach(), g.quats.detach(), g.opacities.detach(), ch,
+                         self.mapper.camera(K, c2w, w, h))
+
+    @torch.no_grad()
+    def render(self, K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int) -> FieldRender:
+        """Colour, depth, alpha and latent [h, w, D] of the map from a camera (K at width x height)."""
+        with self.lock:
+            self.sync()
+            out = self._render(self.latents, K, cam_to_world, width, height)
+        return FieldRender(out.channels[..., 3:], out.channels[..., :3], out.depth, out.alpha)
+
+    def normalise_scale(self, s) -> torch.Tensor:
+        """Physical scale (m; float or tensor) -> [0, 1] through the fitted quantile transform."""
+        if self.scale_tf is None:
+            with self.lock:
+                if self._refresh_supervision() is not None or self.scale_tf is None:
+                    raise RuntimeError("field: no scale transform yet (no supervision masks with scales)")
+        return self.scale_tf(s)
+
+    @torch.no_grad()
+    def language(self, latent: torch.Tensor, scale) -> torch.Tensor:
+        """latent [..., D], scale (m, float or [...]) -> [..., language_dim] in the PCA space."""
+        return self.language_mlp(latent.float(), self.normalise_scale(scale))
+
+    @torch.no_grad()
+    def instance(self, latent: torch.Tensor, scale) -> torch.Tensor:
+        """latent [..., D], scale (m) -> [..., instance_dim], unit rows."""
+        return self.instance_mlp(latent.float(), self.normalise_scale(scale))
+
+    @torch.no_grad()
+    def gaussian_instance(self, scale) -> torch.Tensor:
+        """Instance feature of every Gaussian at one scale: [N, instance_dim] (for grouping)."""
+        with self.lock:
+            self.sync()
+            return self.instance(self.latents, scale)
+
+    # ---------------------------------------------------------------------------- persistence
+
+    def state_dict(self) -> dict:
+        from ..config import config_to_dict
+
+        with self.lock:
+            return {"config": config_to_dict(self.cfg), "latents": self.latents.clone(),
+                    "language_mlp": {k: v.clone() for k, v in self.language_mlp.state_dict().items()},
+                    "instance_mlp": {k: v.clone() for k, v in self.instance_mlp.state_dict().items()},
+                    "scale": self.scale_tf.state_dict() if self.scale_tf is not None else None,
+                    "pca_version": int(self._pca[0]) if self._pca is not None else -1,
+                    "steps": self.steps, "seconds": float(self.seconds)}
+
+    @staticmethod
+    def from_state_dict(mapper, d: dict) -> "FeatureField":
+        """Rebuild a field on a loaded map (raises ValueError naming the mismatch)."""
+        from ..config import config_from_dict
+
+        f = FeatureField(mapper, config_from_dict(d["config"], FieldConfig))
+        lat = d["latents"].float()
+        if tuple(lat.shape) != (len(mapper.gaussians), f.cfg.latent_dim):
+            raise ValueError(f"field latents are {list(lat.shape)}, map has {len(mapper.gaussians)} Gaussians "
+                             f"of latent_dim {f.cfg.latent_dim}")
+        f.latents = lat.clone()
+        f.language_mlp.load_state_dict(d["language_mlp"])
+        f.instance_mlp.load_state_dict(d["instance_mlp"])
+        f.scale_tf = QuantileScale.from_state_dict(d["scale"]) if d.get("scale") is not None else None
+        sset = getattr(mapper, "supervision", None)
+        if sset is not None and sset.pca.pca is not None and int(d.get("pca_version", -1)) == sset.pca.version:
+            p = sset.pca.pca
+            f._pca = (sset.pca.version, p.mean.clone(), p.components.clone())
+        f.steps, f.seconds = int(d.get("steps", 0)), float(d.get("seconds", 0.0))
+        return f
