@@ -139,8 +139,7 @@ class FieldConfig:
     rays_per_step: int = 256
     """Pixels sampled from the rendered view per training step."""
     mask_ray_fraction: float = 0.75
-    """Share of the rays drawn inside masks, equally per mask (small objects get rays too); the
-    rest uniformly over the image."""
+    """Share of rays drawn inside masks, equally per mask (small objects get rays); rest uniform."""
     scales_per_step: int = 4
     """Scales at which the contrastive loss is evaluated per step."""
     huber_delta: float = 0.1
@@ -207,7 +206,7 @@ class RGConfig:
     demo: DemoConfig = field(default_factory=DemoConfig)
     map: MapConfig = field(default_factory=MapConfig)
     field: FieldConfig = field(default_factory=FieldConfig)
-    ground: GroundConfig = field(default_factory=GroundConfig)
+    ground: GroundConfig = dataclasses.field(default_factory=GroundConfig)
 
 
 def _type_name(tp: Any) -> str:
