@@ -1,0 +1,382 @@
+"""The node's background mapping thread (no rclpy here: unit-testable without ROS).
+
+Callbacks only convert messages and `submit()` frames into a bounded queue that drops the oldest
+frame when full (drops are counted). One worker thread takes frames out and runs
+`Mapper.add_frame` (a FrameError is logged and counted; the map is untouched). When the queue is
+idle it does small slices of background work, in this order: supervision of new keyframes
+(masks + embeddings), feature-field training (`train_slice` seconds at a time, capped at
+`train_seconds_max` after each supervision change), then map refinement.
+
+One re-entrant lock (`MapWorker.lock`) is held around every map mutation and read that must see a
+consistent map: add_frame, supervision, field training, refinement, reset, save, grounding, masks
+and map snapshots. The perception models (mask generator, embedder; ~10 s to load) load in a
+helper thread started with the worker, so mapping never waits for them.
+"""
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from rg_core.config import RGConfig
+from rg_core.grounding.result import GroundingResult
+from rg_core.map.frames import FrameError
+from rg_core.map.mapper import Mapper
+
+log = logging.getLogger("rg_ros.worker")
+
+
+@dataclass
+class Frame:
+    """One synchronised, converted frame (what the mapper takes)."""
+
+    rgb: np.ndarray            # [H, W, 3] uint8 RGB
+    depth: np.ndarray          # [H, W] float32 metres, 0 = invalid
+    K: np.ndarray              # [3, 3] float64
+    cam_to_world: np.ndarray   # [4, 4] float64, OpenCV (optical frame) axes, map frame
+    stamp: float               # seconds
+    frame_id: str = ""         # the camera's optical frame
+
+
+class FrameQueue:
+    """Bounded FIFO: `put` on a full queue drops the oldest item and counts it."""
+
+    def __init__(self, maxsize: int):
+        if maxsize < 1:
+            raise ValueError(f"queue size must be >= 1, got {maxsize}")
+        self.maxsize = int(maxsize)
+        self._items: collections.deque = collections.deque()
+        self._cond = threading.Condition()
+        self.dropped = 0
+        self.put_count = 0
+
+    def put(self, item: Any) -> bool:
+        """Queue `item`; returns True if the oldest queued item was dropped to make room."""
+        with self._cond:
+            dropped = len(self._items) >= self.maxsize
+            if dropped:
+                self._items.popleft()
+                self.dropped += 1
+            self._items.append(item)
+            self.put_count += 1
+            self._cond.notify()
+            return dropped
+
+    def get(self, timeout: float | None = None) -> Any | None:
+        """The oldest item, or None after `timeout` seconds (0: do not wait)."""
+        with self._cond:
+            if not self._items and timeout != 0:
+                self._cond.wait(timeout)
+            return self._items.popleft() if self._items else None
+
+    def clear(self) -> int:
+        with self._cond:
+            n = len(self._items)
+            self._items.clear()
+            return n
+
+    def wake(self) -> None:
+        with self._cond:
+            self._cond.notify_all()
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self._items)
+
+
+@dataclass
+class WorkerConfig:
+    """What the worker does besides mapping (the node fills it from its parameters)."""
+
+    queue_size: int = 4
+    """Frames waiting for the mapper; a full queue drops its oldest frame."""
+    features: bool = True
+    """Compute keyframe supervision and train the feature field when idle."""
+    mask_generator: str = "rgbd"
+    """rg_core.perception.masks backend for supervision."""
+    embedder: str = "conse"
+    """rg_core.perception.embed backend for supervision and queries."""
+    train_slice: float = 0.5
+    """Seconds of field training per idle slice (the lock is held for one slice)."""
+    train_seconds_max: float = 30.0
+    """Field training seconds after each supervision change (0: train whenever idle)."""
+    refine_iters: int = 0
+    """Map refinement iterations per idle slice (0: off), at most map.final_iters per keyframe."""
+    idle_wait: float = 0.2
+    """Seconds the worker sleeps waiting for a frame when it has nothing else to do."""
+
+
+class MapWorker:
+    def __init__(self, cfg: RGConfig | None = None, wcfg: WorkerConfig | None = None, mapper: Mapper | None = None,
+                 logger: logging.Logger | None = None,
+                 perception_loader: Callable[[], tuple[Any, Any]] | None = None):
+        self.cfg = cfg or RGConfig()
+        self.wcfg = wcfg or WorkerConfig()
+        self.log = logger or log
+        self.lock = threading.RLock()
+        self.queue = FrameQueue(self.wcfg.queue_size)
+        self.mapper = mapper if mapper is not None else Mapper(self.cfg.map)
+        self.field = getattr(self.mapper, "field", None)
+        self._grounder = None
+        self._perception: tuple[Any, Any] | None = None   # (mask generator, embedder)
+        self._perception_loader = perception_loader or self._load_perception
+        self.perception_state = "off" if not self.wcfg.features else "not started"
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._loader: threading.Thread | None = None
+        self.processed = 0
+        self.rejected = 0
+        self.last_error = ""
+        self.last_result: dict = {}
+        self.worker_error = ""
+        self._train_seconds = 0.0        # since the last supervision change
+        self._train_blocked = ""         # why training skipped (until supervision changes)
+        self._supervised_count = 0
+        self._refined_iters = 0           # since the last keyframe
+        self._kf_count = len(self.mapper.keyframes)
+
+    # ------------------------------------------------------------------------------ life cycle
+
+    def start(self) -> None:
+        if self._thread is not None:
+            raise RuntimeError("worker already started")
+        self._thread = threading.Thread(target=self._run, name="rg-map-worker", daemon=True)
+        self._thread.start()
+        if self.wcfg.features:
+            self.perception_state = "loading"
+            self._loader = threading.Thread(target=self._load_perception_thread, name="rg-perception-loader",
+                                            daemon=True)
+            self._loader.start()
+
+    def stop(self, timeout: float | None = 30.0) -> bool:
+        """Ask the thread to stop after its current step; returns True if it ended within `timeout`."""
+        self._stop.set()
+        self.queue.wake()
+        if self._thread is None:
+            return True
+        self._thread.join(timeout)
+        return not self._thread.is_alive()
+
+    @property
+    def alive(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def submit(self, frame: Frame) -> bool:
+        """Queue a frame (never blocks on mapping); True if the oldest queued frame was dropped."""
+        return self.queue.put(frame)
+
+    # ------------------------------------------------------------------------------ the thread
+
+    def _run(self) -> None:
+        try:
+            busy = False
+            while not self._stop.is_set():
+                frame = self.queue.get(timeout=0 if busy else self.wcfg.idle_wait)
+                if self._stop.is_set():
+                    break
+                if frame is not None:
+                    self._map_frame(frame)
+                    busy = True
+                    continue
+                busy = self._idle_step()
+        except Exception as exc:  # noqa: BLE001 - the node reports a dead worker in its status
+            self.worker_error = f"{type(exc).__name__}: {exc}"
+            self.log.error("mapping worker stopped: %s\n%s", self.worker_error, traceback.format_exc())
+
+    def _map_frame(self, f: Frame) -> None:
+        try:
+            with self.lock:
+                r = self.mapper.add_frame(f.rgb, f.depth, f.K, f.cam_to_world, f.stamp)
+        except FrameError as exc:
+            self.rejected += 1
+            self.last_error = f"frame at {f.stamp:.3f} rejected: {exc}"
+            self.log.warning("%s (map unchanged)", self.last_error)
+            return
+        self.processed += 1
+        self.last_result = {"keyframe": r.keyframe, "reason": r.reason, "added": r.added,
+                            "seconds": round(sum(r.seconds.values()), 3)}
+        if r.keyframe:
+            self._refined_iters = 0
+
+    def _idle_step(self) -> bool:
+        """One slice of background work; False if there was nothing to do."""
+        if self.wcfg.features and self._perception is not None and self._supervise():
+            return True
+        if self.wcfg.features and self._train():
+            return True
+        return self._refine()
+
+    def _supervise(self) -> bool:
+        with self.lock:
+            sset = getattr(self.mapper, "supervision", None)
+            done = set(sset.by_keyframe) if sset is not None else set()
+            if all(kf.index in done for kf in self.mapper.keyframes):
+                return False
+            from rg_core.perception.supervision import supervise_map
+
+            gen, emb = self._perception
+            t = time.perf_counter()
+            try:
+                sset = supervise_map(self.mapper, gen, emb)
+            except Exception as exc:  # noqa: BLE001 - a perception failure must not stop mapping
+                self.log.error("supervision failed, feature training is off: %s: %s", type(exc).__name__, exc)
+                self.wcfg.features = False
+                self.perception_state = f"failed: supervision: {type(exc).__name__}: {exc}"
+                return False
+            self._supervised_count = len(sset.by_keyframe)
+            self._train_seconds, self._train_blocked = 0.0, ""
+            self.log.info("supervision: %d keyframes (%.2f s)", self._supervised_count, time.perf_counter() - t)
+            return True
+
+    def _train(self) -> bool:
+        w = self.wcfg
+        if self._train_blocked or self._supervised_count == 0:
+            return False
+        if w.train_seconds_max > 0 and self._train_seconds >= w.train_seconds_max:
+            return False
+        with self.lock:
+            if self.field is None:
+                try:
+                    from rg_core.field import FeatureField
+                except ImportError as exc:
+                    self._train_blocked = f"feature field not available: {exc}"
+                    self.log.warning(self._train_blocked)
+                    return False
+                self.field = FeatureField(self.mapper, self.cfg.field)
+            r = self.field.train(seconds=w.train_slice)
+        self._train_seconds += float(r.get("seconds", 0.0))
+        if "skipped" in r:
+            self._train_blocked = str(r["skipped"])
+            self.log.info("field training waits: %s", self._train_blocked)
+            return False
+        return True
+
+    def _refine(self) -> bool:
+        n = self.wcfg.refine_iters
+        if n <= 0 or not self.mapper.keyframes or self._refined_iters >= self.cfg.map.final_iters:
+            return False
+        with self.lock:
+            self.mapper.refine(n)
+        self._refined_iters += n
+        return True
+
+    # ------------------------------------------------------------------------------ perception
+
+    def _load_perception(self) -> tuple[Any, Any]:
+        from rg_core.perception.embed import make_embedder
+        from rg_core.perception.masks import make_mask_generator
+
+        return make_mask_generator(self.wcfg.mask_generator), make_embedder(self.wcfg.embedder)
+
+    def _load_perception_thread(self) -> None:
+        t = time.perf_counter()
+        try:
+            self._perception = self._perception_loader()
+        except Exception as exc:  # noqa: BLE001 - mapping goes on without features
+            self.perception_state = f"failed: {type(exc).__name__}: {exc}"
+            self.log.error("perception models did not load (mapping goes on, no feature training): %s",
+                           self.perception_state)
+            return
+        self.perception_state = "ready"
+        self.log.info("perception models loaded in %.1f s (%s, %s)", time.perf_counter() - t,
+                      self.wcfg.mask_generator, self.wcfg.embedder)
+        self.queue.wake()
+
+    # ------------------------------------------------------------------------------ services
+
+    def reset(self) -> None:
+        """Empty the map (and the queue); perception models stay loaded."""
+        with self.lock:
+            self.queue.clear()
+            self.mapper = Mapper(self.cfg.map)
+            self.field, self._grounder = None, None
+            self._train_seconds, self._train_blocked, self._supervised_count = 0.0, "", 0
+            self._refined_iters = 0
+            self.processed = self.rejected = 0
+            self.last_error, self.last_result = "", {}
+
+    def save(self, path: str | Path) -> Path:
+        from rg_core.map.store import save_map
+
+        with self.lock:
+            return save_map(self.mapper, path)
+
+    def _acquire(self, timeout: float) -> bool:
+        return self.lock.acquire(timeout=timeout if timeout > 0 else -1)
+
+    def ground(self, query: str, mode: str = "auto", max_results: int = 1, timeout: float = 30.0) -> GroundingResult:
+        """Ground `query` in the current map; never raises (failures are unsuccessful results)."""
+        if not query.strip():
+            return GroundingResult(False, "empty query", query=query)
+        if not self.mapper.keyframes:
+            return GroundingResult(False, "map is empty: no keyframes yet (send frames first)", query=query)
+        try:
+            from rg_core.field import FeatureField
+            from rg_core.grounding.pipeline import Grounder
+        except ImportError as exc:
+            return GroundingResult(False, f"grounding not available: {exc}", query=query)
+        if not self._acquire(timeout):
+            return GroundingResult(False, f"map busy for {timeout:.1f} s (mapping); try again", query=query)
+        try:
+            if self.field is None:
+                self.field = FeatureField(self.mapper, self.cfg.field)
+            if self._grounder is None:
+                self._grounder = Grounder(self.mapper, self.field, self.cfg)
+            return self._grounder.ground(query, mode=mode, max_results=max_results)
+        except Exception as exc:  # noqa: BLE001 - the service answers, the node lives
+            self.log.error("grounding '%s' failed: %s\n%s", query[:80], exc, traceback.format_exc())
+            return GroundingResult(False, f"grounding failed: {type(exc).__name__}: {exc}", query=query)
+        finally:
+            self.lock.release()
+
+    def masks(self, result: GroundingResult, K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int,
+              timeout: float = 0.5) -> tuple[np.ndarray, np.ndarray] | None:
+        """(amodal, visible) bool [H, W] of a result from a camera, or None if the map is busy or
+        there is no grounder (e.g. after a reset)."""
+        if self._grounder is None or not self._acquire(timeout):
+            return None
+        try:
+            if self._grounder is None:
+                return None
+            amodal, visible = self._grounder.masks(result, K, cam_to_world, width, height)
+            return np.asarray(amodal, bool), np.asarray(visible, bool)
+        finally:
+            self.lock.release()
+
+    def snapshot(self, max_points: int = 0, timeout: float = 0.1) -> tuple[np.ndarray, np.ndarray] | None:
+        """(Gaussian centres [N, 3] float32, colours [N, 3] uint8), evenly subsampled to
+        `max_points` (0: all); None if the map is busy."""
+        if not self._acquire(timeout):
+            return None
+        try:
+            g = self.mapper.gaussians
+            if not len(g):
+                return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
+            pts = g.means.detach().numpy().astype(np.float32)
+            cols = (g.colors.detach().clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+        finally:
+            self.lock.release()
+        if max_points and len(pts) > max_points:
+            idx = np.linspace(0, len(pts) - 1, max_points).round().astype(np.int64)
+            pts, cols = pts[idx], cols[idx]
+        return pts, cols
+
+    def stats(self) -> dict:
+        """Counters for the status topic; takes no lock (never waits for mapping)."""
+        m = self.mapper
+        field = self.field
+        return {"frames": m.frames_seen, "keyframes": len(m.keyframes), "gaussians": len(m.gaussians),
+                "mapped": self.processed, "rejected": self.rejected, "queue": len(self.queue),
+                "queue_size": self.queue.maxsize, "dropped": self.queue.dropped, "received": self.queue.put_count,
+                "supervised_keyframes": self._supervised_count, "perception": self.perception_state,
+                "field_steps": int(getattr(field, "steps", 0)) if field is not None else 0,
+                "field_waits": self._train_blocked, "last_error": self.last_error,
+                "worker": "running" if self.alive else ("stopped: " + self.worker_error if self.worker_error
+                                                         else "stopped")}
