@@ -25,13 +25,18 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
-        (f"share/{PACKAGE}/config", [str(p) for p in sorted(Path("config").glob("*.yaml"))]),
+        (f"share/{PACKAGE}/config", [str(p) for p in sorted(Path("config").glob("*.yaml"))]
+         + [str(p) for p in sorted(Path("config").glob("*.rviz"))]),
+        (f"share/{PACKAGE}/launch", [str(p) for p in sorted(Path("launch").glob("*.launch.py"))]),
     ],
     # The fast CPU rasterizer; torch must be installed first (pip --no-build-isolation).
     ext_modules=[CppExtension(
         "rg_core.render._rasterize_cpu", ["rg_core/render/csrc/rasterize_cpu.cpp", "rg_core/render/csrc/project_cpu.cpp"],
         extra_compile_args=["-O3", "-fopenmp", "-fno-math-errno"], extra_link_args=["-fopenmp"])],
     cmdclass={"build_ext": BuildExtension.with_options(use_ninja=False)},
-    entry_points={"console_scripts": ["rg = rg_core.cli:main"]},
+    # rg-node / rg-ground / rg-replay: the node, a Ground service call and a scene replayed like a bag,
+    # from a pip install (no ros2cli there); launch/grounding.launch.py runs rg-node under a full ROS 2.
+    entry_points={"console_scripts": ["rg = rg_core.cli:main", "rg-node = rg_ros.tools:node_main",
+                                      "rg-ground = rg_ros.tools:ground_main", "rg-replay = rg_ros.tools:replay_main"]},
     zip_safe=False,
 )

@@ -1,0 +1,215 @@
+"""Console scripts (setup.py entry_points), the pip-install equivalents of `ros2 launch/run/service/bag`:
+
+  rg-node   --params config/grounding.yaml [--name rg_node] [--ros-args ...]
+  rg-ground "query" [--mode auto|explicit|implicit] [--max-results N] [--timeout S] [--service /ground]
+  rg-replay SCENE --rate HZ [--loop] [--count N] [--split train|test|all]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+from .node import NODE_NAME, NodeParams
+
+
+def _split_ros_args(argv: list[str] | None) -> tuple[list[str], list[str]]:
+    """(our arguments, the full argv for rclpy.init: program name + any --ros-args section)."""
+    from rclpy.utilities import remove_ros_args
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ours = remove_ros_args(["prog"] + argv)[1:]
+    return ours, ["prog"] + argv
+
+
+# ------------------------------------------------------------------------------------ rg-node
+
+def node_main(argv: list[str] | None = None) -> int:
+    ours, ros_argv = _split_ros_args(argv)
+    ap = argparse.ArgumentParser(prog="rg-node", description="ReasonGrounder mapping + grounding node")
+    ap.add_argument("--params", help="ros__parameters YAML (e.g. config/grounding.yaml); read and declared "
+                                     "by the node (unknown names are an error)")
+    ap.add_argument("--name", default=NODE_NAME, help=f"node name (default {NODE_NAME}); also selects the "
+                                                      "YAML section")
+    args = ap.parse_args(ours)
+    from .node import GroundingNode, read_params_file, spin
+
+    try:
+        overrides = read_params_file(args.params, args.name) if args.params else {}
+    except ValueError as exc:
+        print(f"rg-node: {exc}", file=sys.stderr)
+        return 2
+    import rclpy
+
+    rclpy.init(args=ros_argv)
+    try:
+        node = GroundingNode(args.name, overrides)
+    except Exception as exc:  # noqa: BLE001 - bad map file, bad config: say why and exit
+        print(f"rg-node: cannot start: {type(exc).__name__}: {exc}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    return spin(node)
+
+
+# ---------------------------------------------------------------------------------- rg-ground
+
+def response_to_json(res) -> dict:
+    from .convert import pose_to_matrix
+    from .pointcloud import from_pointcloud2
+
+    objs = []
+    for o in res.objects:
+        T = pose_to_matrix(o.pose)
+        objs.append({"center": T[:3, 3].tolist(), "rotation": T[:3, :3].round(6).tolist(),
+                     "size": [o.size.x, o.size.y, o.size.z], "gaussians": int(o.gaussian_count),
+                     "confidence": float(o.confidence), "aabb": [[o.aabb_min.x, o.aabb_min.y, o.aabb_min.z],
+                                                                 [o.aabb_max.x, o.aabb_max.y, o.aabb_max.z]]})
+    pts, _ = from_pointcloud2(res.cloud)
+    return {"success": bool(res.success), "message": res.message, "target": res.target,
+            "explanation": res.explanation, "confidence": float(res.confidence), "objects": objs,
+            "cloud_points": int(len(pts)), "frame_id": res.cloud.header.frame_id,
+            "timings": dict(zip(res.stage_names, map(float, res.stage_seconds)))}
+
+
+def ground_main(argv: list[str] | None = None) -> int:
+    ours, ros_argv = _split_ros_args(argv)
+    ap = argparse.ArgumentParser(prog="rg-ground", description="Call the Ground service; print the response as JSON")
+    ap.add_argument("query")
+    ap.add_argument("--mode", default="auto", help="auto (default), explicit or implicit")
+    ap.add_argument("--max-results", type=int, default=0, help="0 = the node's default")
+    ap.add_argument("--timeout", type=float, default=60.0, help="seconds for discovery plus the call")
+    ap.add_argument("--service", default=NodeParams.ground_service)
+    args = ap.parse_args(ours)
+    import rclpy
+    from rg_interfaces.srv import Ground
+
+    rclpy.init(args=ros_argv)
+    node = rclpy.create_node("rg_ground_client")
+    try:
+        t0 = time.monotonic()
+        client = node.create_client(Ground, args.service)
+        if not client.wait_for_service(timeout_sec=args.timeout):
+            print(json.dumps({"success": False, "message": f"service {args.service} not available after "
+                                                           f"{args.timeout:.0f} s"}))
+            return 2
+        req = Ground.Request(query=args.query, mode=args.mode, max_results=max(args.max_results, 0))
+        future = client.call_async(req)
+        rclpy.spin_until_future_complete(node, future, timeout_sec=max(args.timeout - (time.monotonic() - t0), 1.0))
+        if not future.done():
+            print(json.dumps({"success": False, "message": f"no reply within {args.timeout:.0f} s"}))
+            return 3
+        out = response_to_json(future.result())
+        out["seconds"] = round(time.monotonic() - t0, 3)
+        print(json.dumps(out))
+        return 0 if out["success"] else 1
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+# ---------------------------------------------------------------------------------- rg-replay
+
+def frame_messages(frame, stamp, frame_id: str, map_frame: str):
+    """One scene frame -> (Image rgb8, Image 16UC1 mm, CameraInfo, PoseStamped), all with `stamp`."""
+    import numpy as np
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import CameraInfo
+
+    from . import convert as cv
+
+    rgb = frame.load_rgb()
+    depth = frame.load_depth()
+    mm = np.where(np.isfinite(depth) & (depth > 0), np.round(depth * 1000.0), 0).clip(0, 65535).astype(np.uint16)
+    hdr = cv.header(frame_id, stamp)
+    color = cv.to_image(rgb, "rgb8")
+    color.header = hdr
+    dimg = cv.to_image(mm, "16UC1")
+    dimg.header = hdr
+    K = np.asarray(frame.intrinsics.K, np.float64)
+    h, w = rgb.shape[:2]
+    info = CameraInfo(header=hdr, width=w, height=h, distortion_model="plumb_bob", d=[0.0] * 5,
+                      k=K.reshape(-1).tolist(), r=np.eye(3).reshape(-1).tolist(),
+                      p=np.hstack([K, np.zeros((3, 1))]).reshape(-1).tolist())
+    pose = PoseStamped(header=cv.header(map_frame, stamp), pose=cv.matrix_to_pose(frame.cam_to_world))
+    return color, dimg, info, pose
+
+
+def replay_main(argv: list[str] | None = None) -> int:
+    ours, ros_argv = _split_ros_args(argv)
+    d = NodeParams()
+    ap = argparse.ArgumentParser(prog="rg-replay", description="Publish a scene's frames like a bag: rgb8, 16UC1 "
+                                 "depth, CameraInfo and PoseStamped with one stamp per frame")
+    ap.add_argument("scene", help="scene folder (ReasoningGD layout or a capture folder)")
+    ap.add_argument("--rate", type=float, default=2.0, help="frames per second")
+    ap.add_argument("--loop", action="store_true", help="start again after the last frame (stamps keep increasing)")
+    ap.add_argument("--count", type=int, default=0, help="stop after this many frames (0 = one pass or forever with --loop)")
+    ap.add_argument("--split", choices=("train", "test", "all"), default="train")
+    ap.add_argument("--wait", type=float, default=5.0, help="seconds to wait for a subscriber before publishing")
+    ap.add_argument("--frame-id", default="camera_color_optical_frame")
+    ap.add_argument("--map-frame", default=d.map_frame)
+    ap.add_argument("--color-topic", default=d.color_topic)
+    ap.add_argument("--depth-topic", default=d.depth_topic)
+    ap.add_argument("--camera-info-topic", default=d.camera_info_topic)
+    ap.add_argument("--pose-topic", default=d.pose_topic)
+    args = ap.parse_args(ours)
+    if args.rate <= 0:
+        ap.error("--rate must be > 0")
+    from rg_core.io.captures import read_scene
+    from rg_core.io.images import SceneError
+
+    try:
+        scene = read_scene(args.scene)
+    except SceneError as exc:
+        print(f"rg-replay: {exc}", file=sys.stderr)
+        return 2
+    frames = {"train": scene.train, "test": scene.test, "all": sorted(scene.train + scene.test,
+                                                                         key=lambda f: f.stamp)}[args.split]
+    if not frames:
+        print(f"rg-replay: {args.scene} has no {args.split} frames", file=sys.stderr)
+        return 2
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import CameraInfo, Image
+
+    rclpy.init(args=ros_argv)
+    node = rclpy.create_node("rg_replay")
+    qos = qos_profile_sensor_data
+    pubs = [node.create_publisher(Image, args.color_topic, qos), node.create_publisher(Image, args.depth_topic, qos),
+            node.create_publisher(CameraInfo, args.camera_info_topic, qos),
+            node.create_publisher(PoseStamped, args.pose_topic, qos)]
+    log = node.get_logger()
+    sent = 0
+    try:
+        t_end = time.monotonic() + args.wait
+        while time.monotonic() < t_end and any(p.get_subscription_count() == 0 for p in pubs):
+            time.sleep(0.05)
+        period = 1.0 / args.rate
+        next_t = time.monotonic()
+        while True:
+            for f in frames:
+                msgs = frame_messages(f, node.get_clock().now().to_msg(), args.frame_id, args.map_frame)
+                for pub, msg in zip(pubs, msgs):
+                    pub.publish(msg)
+                sent += 1
+                if args.count and sent >= args.count:
+                    raise StopIteration
+                next_t += period
+                time.sleep(max(0.0, next_t - time.monotonic()))
+            if not args.loop:
+                break
+    except (StopIteration, KeyboardInterrupt):
+        pass
+    finally:
+        log.info(f"published {sent} frames from {args.scene}")
+        time.sleep(0.2)   # let the last messages leave
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit({"node": node_main, "ground": ground_main, "replay": replay_main}[sys.argv.pop(1)]())
