@@ -1,0 +1,46 @@
+"""Axis-aligned and oriented boxes of a Gaussian group (open3d), robust to degenerate groups."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def robust_inliers(points: np.ndarray, k: float = 3.0) -> np.ndarray:
+    """[N, 3] -> bool [N]: points within k robust spreads (MAD) of the median in every axis, so a
+    few stray Gaussians far from the object do not inflate its box."""
+    if len(points) < 8:
+        return np.ones(len(points), bool)
+    med = np.median(points, 0)
+    mad = np.median(np.abs(points - med), 0) * 1.4826
+    return (np.abs(points - med) <= k * np.maximum(mad, 1e-3)).all(1)
+
+
+def group_boxes(points: np.ndarray):
+    """points [N, 3] -> (aabb_min [3], aabb_max [3], obb_center [3], obb_rotation [3, 3], obb_extent [3]).
+    Fewer than 4 points or coplanar points get an axis-aligned OBB (open3d's PCA box needs volume)."""
+    import open3d as o3d
+
+    pts = np.asarray(points, np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or not len(pts) or not np.isfinite(pts).all():
+        raise ValueError(f"group_boxes: need finite points [N >= 1, 3], got {pts.shape}")
+    lo, hi = pts.min(0), pts.max(0)
+    centre, rot, ext = (lo + hi) / 2, np.eye(3), hi - lo
+    if len(pts) >= 4 and np.linalg.matrix_rank(pts - pts.mean(0), tol=1e-6) == 3:
+        try:
+            obb = o3d.geometry.OrientedBoundingBox.create_from_points(o3d.utility.Vector3dVector(pts))
+            r = np.asarray(obb.R, np.float64)
+            if np.linalg.det(r) < 0:  # keep a right-handed frame (same box)
+                r = r.copy()
+                r[:, 2] *= -1
+            centre, rot, ext = np.asarray(obb.center, np.float64), r, np.asarray(obb.extent, np.float64)
+        except RuntimeError:
+            pass
+    return lo, hi, centre, rot, ext
+
+
+def box_iou_aabb(a_min, a_max, b_min, b_max) -> float:
+    """3D IoU of two axis-aligned boxes."""
+    a_min, a_max, b_min, b_max = (np.asarray(v, np.float64) for v in (a_min, a_max, b_min, b_max))
+    inter = np.prod(np.clip(np.minimum(a_max, b_max) - np.maximum(a_min, b_min), 0, None))
+    va, vb = np.prod(np.clip(a_max - a_min, 0, None)), np.prod(np.clip(b_max - b_min, 0, None))
+    union = va + vb - inter
+    return float(inter / union) if union > 0 else 0.0

@@ -1,0 +1,258 @@
+"""The query pipeline in the paper's order: reasoning -> reference view -> relevancy -> scale s* ->
+HDBSCAN over instance features at s* -> the group under the most relevant pixel -> boxes.
+
+`Grounder` holds no map state of its own: it reads the Mapper (keyframes, Gaussians, supervision)
+and the FeatureField, so a node can keep mapping and training between queries.
+"""
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import torch
+
+from ..config import RGConfig
+from ..render import rasterize
+from .boxes import group_boxes, robust_inliers
+from .grouping import Groups, cluster_instances
+from .relevancy import CANONICAL, relevancy
+from .result import GroundedObject, GroundingResult
+from .vocabulary import build_vocabulary
+
+log = logging.getLogger(__name__)
+
+
+class Grounder:
+    """ground(query) -> GroundingResult; masks(result, camera) -> amodal and visible masks.
+
+    `text_encoder(list[str]) -> [n, D]` must embed texts in the space of the map's mask embeddings
+    (the embedder's encode_texts; the packaged MiniLM for the offline default). `scene_names` are
+    names the caller knows the scene may hold (added to the reasoner's vocabulary).
+    """
+
+    def __init__(self, mapper, field, cfg: RGConfig | None = None, reasoner=None, text_encoder=None,
+                 scene_names: list[str] | None = None):
+        self.mapper, self.field, self.cfg = mapper, field, cfg or RGConfig()
+        self.gcfg = self.cfg.ground
+        self._reasoner, self._text = reasoner, text_encoder
+        self.scene_names = list(scene_names or [])
+        self._text_cache: dict[str, torch.Tensor] = {}
+        self._groups: dict[tuple, Groups] = {}
+        self._vocab: tuple | None = None
+
+    # ------------------------------------------------------------------------------ models
+
+    @property
+    def reasoner(self):
+        if self._reasoner is None:
+            from ..perception.reasoner import make_reasoner
+
+            self._reasoner = make_reasoner(self.cfg.reason.backend, cfg=self.cfg.reason, text_encoder=self.encode)
+        return self._reasoner
+
+    def encode(self, texts: list[str]) -> torch.Tensor:
+        """[n] strings -> [n, D] unit rows (cached: canonical phrases and names repeat)."""
+        if self._text is None:
+            from ..perception.embed import MiniLMText
+
+            self._text = MiniLMText()
+        todo = [t for t in dict.fromkeys(texts) if t not in self._text_cache]
+        if todo:
+            for t, e in zip(todo, self._text(todo)):
+                self._text_cache[t] = torch.nn.functional.normalize(e.float(), dim=-1)
+        return torch.stack([self._text_cache[t] for t in texts]) if texts else torch.zeros(0, 1)
+
+    def vocabulary(self) -> list[str]:
+        sset = self.mapper.supervision
+        n_masks = sum(len(s.embeddings) for s in sset.by_keyframe.values()) if sset is not None else 0
+        key = (n_masks, tuple(self.scene_names), tuple(self.gcfg.vocabulary))
+        if self._vocab is None or self._vocab[0] != key:
+            emb = torch.cat([s.embeddings for s in sset.by_keyframe.values()]) if n_masks else torch.zeros(0, 1)
+            self._vocab = (key, build_vocabulary(self.scene_names, self.gcfg.vocabulary, emb, self.encode,
+                                                 self.gcfg.support_vocabulary))
+        return list(self._vocab[1])
+
+    # ------------------------------------------------------------------------------ checks
+
+    def _not_ready(self) -> str | None:
+        m = self.mapper
+        if not m.keyframes or not len(m.gaussians):
+            return "the map is empty: no keyframes yet"
+        if m.supervision is None or not m.supervision.by_keyframe or m.supervision.pca.pca is None:
+            return "the map has no 2D supervision yet (masks and embeddings per keyframe)"
+        if self.field is None or self.field.steps == 0:
+            return "the feature field has not been trained yet"
+        return None
+
+    def _check_query(self, query) -> str | None:
+        if not isinstance(query, str):
+            return f"query must be a string, got {type(query).__name__}"
+        if not query.strip():
+            return "empty query: say what to find, e.g. 'coffee mug'"
+        if len(query) > self.gcfg.max_query_chars:
+            return f"query is {len(query)} characters long; at most {self.gcfg.max_query_chars} are accepted"
+        return None
+
+    # ------------------------------------------------------------------------------ pipeline
+
+    def reference_view(self, target: torch.Tensor):
+        """Keyframe whose mask embedding is most similar to the target text [D]:
+        -> (keyframe, mask index, similarity, physical scale s*)."""
+        best = (None, -1, -2.0, 0.0)
+        by_index = {kf.index: kf for kf in self.mapper.keyframes}
+        for k, sup in self.mapper.supervision.by_keyframe.items():
+            if k not in by_index or not len(sup.embeddings):
+                continue
+            sims = torch.nn.functional.normalize(sup.embeddings.float(), dim=-1) @ target
+            i = int(sims.argmax())
+            if float(sims[i]) > best[2]:
+                best = (by_index[k], i, float(sims[i]), float(sup.scales[i]))
+        return best
+
+    def groups(self, scale: float) -> Groups:
+        """Clusters of instance features at one scale (cached until the map or field changes)."""
+        key = (round(scale, 4), len(self.mapper.gaussians), self.field.steps)
+        if key not in self._groups:
+            g = self.gcfg
+            feats = self.field.gaussian_instance(scale)
+            self._groups = {key: cluster_instances(feats, g.max_cluster_points, g.min_cluster_size, g.cluster_eps,
+                                                   seed=g.seed)}
+        return self._groups[key]
+
+    def _decompress(self, z: torch.Tensor) -> torch.Tensor:  # [..., k] -> [..., D]
+        return self.mapper.supervision.pca.pca.inverse(z)
+
+    def ground(self, query: str, mode: str = "auto", max_results: int = 1) -> GroundingResult:
+        t = {}
+        t0 = time.perf_counter()
+        bad = self._check_query(query)
+        if bad:
+            return GroundingResult(False, bad, query=str(query)[:200])
+        if mode not in ("auto", "explicit", "implicit"):
+            return GroundingResult(False, f"mode must be auto, explicit or implicit, got {mode!r}", query=query)
+        if max_results < 1:
+            return GroundingResult(False, f"max_results must be >= 1, got {max_results}", query=query)
+        not_ready = self._not_ready()
+        if not_ready:
+            return GroundingResult(False, not_ready, query=query)
+
+        vocab = self.vocabulary()
+        r = self.reasoner.reason(query, vocab, image=None, mode=mode)
+        t["reason"] = time.perf_counter() - t0
+        res = GroundingResult(False, "", query=query, target=r.target, explanation=r.explanation)
+        if not r.target:
+            res.message = f"nothing in the map matches {query!r}: {r.explanation}"
+            res.timings = t
+            return res
+
+        t1 = time.perf_counter()
+        target = self.encode([r.target])[0]
+        kf, mi, msim, scale = self.reference_view(target)
+        t["reference_view"] = time.perf_counter() - t1
+        if kf is None or msim < self.gcfg.min_mask_similarity:
+            res.message = (f"no part of the map looks like {r.target!r}: best mask similarity {msim:.2f} "
+                           f"< {self.gcfg.min_mask_similarity}")
+            res.timings = t
+            return res
+        res.reference_view = kf.index
+
+        t2 = time.perf_counter()
+        w, h = kf.size
+        fr = self.field.render(kf.K, kf.cam_to_world, w, h)
+        lang = self._decompress(self.field.language(fr.latent, scale))       # [h, w, D]
+        canon = self.encode(list(CANONICAL))
+        rel = relevancy(lang, target, canon)                                  # [h, w]
+        rel = torch.where(fr.alpha > self.gcfg.mask_alpha, rel, torch.zeros_like(rel))
+        peak = int(rel.reshape(-1).argmax())
+        py, px = divmod(peak, w)
+        q_inst = self.field.instance(fr.latent[py, px], scale)                # [Di]
+        t["relevancy"] = time.perf_counter() - t2
+
+        t3 = time.perf_counter()
+        groups = self.groups(scale)
+        t["cluster"] = time.perf_counter() - t3
+        t4 = time.perf_counter()
+        if not len(groups.centres):
+            res.message = f"no instance groups at scale {scale:.3f} m (HDBSCAN found only noise)"
+            res.timings = t
+            return res
+        sim = groups.centres @ q_inst                                          # [G]
+        order = torch.argsort(sim, descending=True).tolist()
+        chosen = [order[0]]
+        if max_results > 1:
+            chosen = self._more_instances(groups, order, target, canon, scale, max_results)
+        g = self.mapper.gaussians
+        means, colors = g.means.detach().numpy(), (g.colors.detach().clamp(0, 1) * 255).round().byte().numpy()
+        peak_rel = float(rel[py, px])
+        for rank, gi in enumerate(chosen):
+            ids = np.nonzero(groups.labels == gi)[0]
+            ids = ids[robust_inliers(means[ids], self.gcfg.outlier_mads)]
+            if not len(ids):
+                continue
+            lo, hi, c, R, ext = group_boxes(means[ids])
+            conf = float(r.confidence) * peak_rel * float(max(sim[gi], 0.0))
+            res.objects.append(GroundedObject(ids.astype(np.int64), means[ids].astype(np.float32), colors[ids],
+                                              lo, hi, c, R, ext, conf))
+        t["group"] = time.perf_counter() - t4
+        t["total"] = time.perf_counter() - t0
+        res.timings = t
+        if not res.objects:
+            res.message = "the selected group was empty after outlier removal"
+            return res
+        res.success = True
+        res.confidence = res.objects[0].confidence
+        res.message = (f"{len(res.objects)} group(s) for {r.target!r}, {len(res.objects[0].gaussian_ids)} Gaussians; "
+                       f"reference view {kf.index}, scale {scale:.3f} m")
+        res.explanation = (f"{r.explanation} Reference view {kf.index} (mask similarity {msim:.2f}); scale "
+                           f"{scale:.3f} m; the most relevant pixel ({px}, {py}, relevancy {peak_rel:.2f}) lies in "
+                           f"a group of {len(res.objects[0].gaussian_ids)} Gaussians.")
+        return res
+
+    def _more_instances(self, groups: Groups, order: list[int], target, canon, scale, k: int) -> list[int]:
+        """Other groups as relevant as the best one ("the cups"): relevancy of each group's mean latent."""
+        lat = self.field.latents
+        labels = torch.from_numpy(groups.labels)
+        scores = []
+        for gi in order:
+            members = labels == gi
+            if not bool(members.any()):
+                scores.append(0.0)
+                continue
+            z = self.field.language(lat[members].mean(0), scale)
+            scores.append(float(relevancy(self._decompress(z), target, canon)))
+        best = scores[0]
+        chosen = [order[0]]
+        for gi, s in sorted(zip(order[1:], scores[1:]), key=lambda x: -x[1]):
+            if len(chosen) >= k:
+                break
+            if s >= self.gcfg.multi_instance_ratio * best and s > 0.5:
+                chosen.append(gi)
+        return chosen
+
+    # ------------------------------------------------------------------------------ masks
+
+    @torch.no_grad()
+    def masks(self, result: GroundingResult, K: np.ndarray, cam_to_world: np.ndarray, width: int,
+              height: int) -> tuple[np.ndarray, np.ndarray]:
+        """Amodal (the group rendered alone) and visible (the group's share of the blending weight
+        in the full render above one half) masks of a result's groups: two bool [height, width]."""
+        g = self.mapper.gaussians
+        N = len(g)
+        empty = np.zeros((height, width), bool)
+        ids = np.concatenate([o.gaussian_ids for o in result.objects]) if result.objects else np.zeros(0, np.int64)
+        if not result.success or not len(ids) or not N:
+            return empty, empty.copy()
+        if int(ids.max()) >= N:
+            raise ValueError(f"masks: the result names Gaussian {int(ids.max())} but the map now has {N}; ground again")
+        cam = self.mapper.camera(K, cam_to_world, width, height)
+        member = torch.zeros(N, 1)
+        member[torch.from_numpy(ids)] = 1.0
+        args = (g.means.detach(), g.scales.detach(), g.quats.detach(), g.opacities.detach())
+        full = rasterize(*args, member, cam)
+        alone = rasterize(*args, member, cam, subset=torch.from_numpy(ids))
+        a = self.gcfg.mask_alpha
+        amodal = (alone.alpha > a).numpy()
+        share = full.channels[..., 0] / full.alpha.clamp(min=1e-6)
+        visible = ((full.alpha > a) & (share > 0.5)).numpy()
+        return amodal, visible
