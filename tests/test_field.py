@@ -7,7 +7,15 @@ import pytest
 import torch
 
 from rg_core.config import FieldConfig, MapConfig
-from rg_core.field import FeatureField, QuantileScale, ScaleMLP, instance_loss, language_loss, language_targets, shares_group
+from rg_core.field import (
+    FeatureField,
+    QuantileScale,
+    ScaleMLP,
+    instance_loss,
+    language_loss,
+    language_targets,
+    shares_group,
+)
 from rg_core.field.oracle import RandomNameEmbedding, oracle_checks, oracle_supervision
 from rg_core.map.mapper import Mapper
 from rg_core.map.run import stream_frames

@@ -267,7 +267,7 @@ class FeatureField:
         self._m[rows], self._v[rows] = m, v
         upd = (m / (1 - b1 ** t).float()) / ((v / (1 - b2 ** t).float()).sqrt() + eps)
         self.latents[rows] = self.latents[rows] - self.cfg.lr_latents * upd
-        return int(len(rows))
+        return len(rows)
 
     def train(self, seconds: float | None = None, iters: int | None = None, progress: bool = False) -> dict:
         """Train until `seconds` (default cfg.seconds when neither is given) or `iters` runs out,
@@ -289,7 +289,7 @@ class FeatureField:
             bar.update(1)
             bar.set_postfix(loss=f"{r['loss']:.4f}")
         bar.close()
-        mean = lambda k: float(np.mean([h[k] for h in hist])) if hist else float("nan")  # noqa: E731
+        mean = lambda k: float(np.mean([h[k] for h in hist])) if hist else float("nan")
         return {"steps": len(hist), "seconds": time.perf_counter() - t0, "loss": mean("loss"),
                 "language": mean("language"), "instance": mean("instance")}
 
@@ -348,7 +348,7 @@ class FeatureField:
                     "steps": self.steps, "seconds": float(self.seconds)}
 
     @staticmethod
-    def from_state_dict(mapper, d: dict) -> "FeatureField":
+    def from_state_dict(mapper, d: dict) -> FeatureField:
         """Rebuild a field on a loaded map (raises ValueError naming the mismatch)."""
         from ..config import config_from_dict
 

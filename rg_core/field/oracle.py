@@ -9,7 +9,7 @@ embedding of the object's name. With perfect supervision, any error left is the 
 from __future__ import annotations
 
 import zlib
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch

@@ -23,7 +23,7 @@ class QuantileScale:
         self.n_fit = int(n_fit)
 
     @staticmethod
-    def fit(scales: torch.Tensor, n_knots: int = 33) -> "QuantileScale":
+    def fit(scales: torch.Tensor, n_knots: int = 33) -> QuantileScale:
         """scales [M] (m, > 0 expected; non-finite values are ignored)."""
         s = torch.as_tensor(scales, dtype=torch.float64).reshape(-1)
         s = s[torch.isfinite(s)]
@@ -54,5 +54,5 @@ class QuantileScale:
         return {"knots": self.knots.clone(), "n_fit": self.n_fit}
 
     @staticmethod
-    def from_state_dict(d: dict) -> "QuantileScale":
+    def from_state_dict(d: dict) -> QuantileScale:
         return QuantileScale(d["knots"].double(), int(d["n_fit"]))

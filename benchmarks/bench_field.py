@@ -1,0 +1,132 @@
+"""Feature field: oracle-supervised error against training time on a synthetic scene.
+
+    python benchmarks/bench_field.py [--scene DIR] [--budgets 2 5 10 20] [--out DIR] [--json]
+
+Without --scene it generates a 40-view 320x240 scene with 7 objects (seed 0) with `rg synth`'s
+generator, maps it with the default MapConfig (`map_scene`), builds oracle supervision (ground-
+truth visible masks, object names embedded with the packaged MiniLM text model) and, for each
+budget, trains a fresh field (default FieldConfig) for that many seconds and runs the two checks
+of rg_core.field.oracle on the test views. Writes OUT/field_error_vs_time.png and OUT/field.json.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import torch  # noqa: E402
+
+from rg_core.config import FieldConfig, MapConfig, SynthConfig  # noqa: E402
+from rg_core.field import FeatureField  # noqa: E402
+from rg_core.field.oracle import RandomNameEmbedding, oracle_checks, oracle_supervision  # noqa: E402
+from rg_core.io.captures import read_scene  # noqa: E402
+from rg_core.map.run import map_scene  # noqa: E402
+from rg_core.synth.generator import default_objects_dir, generate_scene  # noqa: E402
+from rg_core.util import peak_rss_mb  # noqa: E402
+
+
+def plot(rows: list[dict], default_budget: float, out_png: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    secs = [r["seconds"] for r in rows]
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    ax.plot(secs, [100 * r["argmax_in_mask"] for r in rows], "o-", label="relevancy argmax in mask (3x3 peak)")
+    ax.plot(secs, [100 * r["argmax_in_mask_raw"] for r in rows], "s:", label="relevancy argmax in mask (raw pixel)")
+    ax.plot(secs, [100 * r["instance_separation"] for r in rows], "^--", label="instance separation (pixels)")
+    ax.axhline(90, color="grey", lw=0.8, ls="--")
+    for r in rows:
+        if r["budget_s"] == default_budget:
+            ax.annotate("default", (r["seconds"], 100 * r["instance_separation"]), textcoords="offset points",
+                        xytext=(4, -12), fontsize=7)
+    ax.set_xlabel("feature training time (s)")
+    ax.set_ylabel("% on test views")
+    ax.set_ylim(0, 102)
+    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title("Feature field with oracle supervision: error against run time", fontsize=9)
+    fig.tight_layout()
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", help="scene folder (default: generate 40 views 320x240, 7 objects)")
+    ap.add_argument("--budgets", type=float, nargs="+", default=[2, 5, 10, 20])
+    ap.add_argument("--threads", type=int, default=1, help="torch intra-op threads (1 is fastest on 2 shared cores)")
+    ap.add_argument("--random-names", action="store_true", help="random name vectors instead of MiniLM")
+    ap.add_argument("--out", default="bench_out")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+    if len(args.budgets) < 4:
+        ap.error("give at least four budgets")
+    torch.set_num_threads(args.threads)
+    default_cfg = FieldConfig()
+    report = {"default_seconds": default_cfg.seconds, "threads": args.threads, "budgets": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        scene_dir = args.scene
+        if scene_dir is None:
+            scene_dir = str(Path(tmp) / "synth")
+            t = time.perf_counter()
+            generate_scene(scene_dir, SynthConfig(views=40, width=320, height=240, objects=7, seed=0),
+                           default_objects_dir(), progress=False)
+            print(f"generated {scene_dir} in {time.perf_counter() - t:.1f} s", file=sys.stderr)
+        mapper, map_rep = map_scene(scene_dir, MapConfig(), progress=True)
+        scene = read_scene(scene_dir)
+        report["map"] = {k: map_rep[k] for k in ("keyframes", "gaussians", "seconds_total", "train_frames", "test_frames")}
+        print(f"map: {map_rep['keyframes']} keyframes, {map_rep['gaussians']} Gaussians, "
+              f"{map_rep['seconds_total']:.1f} s", file=sys.stderr)
+        embed, report["names"] = RandomNameEmbedding(), "random unit vectors"
+        if not args.random_names:
+            try:
+                from rg_core.perception.embed import MiniLMText
+
+                embed, report["names"] = MiniLMText(), "MiniLM text embeddings"
+            except Exception as exc:  # noqa: BLE001 - any loading failure: fall back, and say so
+                print(f"MiniLM unavailable ({exc}); random name vectors instead", file=sys.stderr)
+        oracle_supervision(mapper, scene.train, scene.objects, embed)
+        report["supervision"] = mapper.supervision.stats()
+        for b in args.budgets:
+            field = FeatureField(mapper, default_cfg)
+            tr = field.train(seconds=b, progress=True)
+            t = time.perf_counter()
+            chk = oracle_checks(field, scene.test, scene.objects, embed)
+            row = {"budget_s": b, "seconds": round(tr["seconds"], 2), "steps": tr["steps"],
+                   "steps_per_s": round(tr["steps"] / max(tr["seconds"], 1e-9), 2),
+                   "loss_language": round(tr.get("language", float("nan")), 5),
+                   "loss_instance": round(tr.get("instance", float("nan")), 5),
+                   "argmax_in_mask": round(chk["argmax_in_mask"], 4), "argmax_in_mask_raw": round(chk["argmax_in_mask_raw"], 4),
+                   "instance_separation": round(chk["instance_separation"], 4), "pairs": chk["pairs"],
+                   "pixels": chk["pixels"], "seconds_checks": round(time.perf_counter() - t, 2)}
+            report["budgets"].append(row)
+            print(f"budget {b:>5.1f} s: {row['steps']:>4} steps, argmax in mask {100 * row['argmax_in_mask']:.1f}% "
+                  f"(raw {100 * row['argmax_in_mask_raw']:.1f}%), instance separation "
+                  f"{100 * row['instance_separation']:.1f}% over {row['pairs']} (object, view) pairs", file=sys.stderr)
+    report["peak_rss_mb"] = round(peak_rss_mb(), 1)
+    out = Path(args.out)
+    png = out / "field_error_vs_time.png"
+    plot(report["budgets"], default_cfg.seconds, png)
+    report["plot"] = str(png)
+    (out / "field.json").write_text(json.dumps(report, indent=1))
+    print(f"\n{'budget s':>8} {'steps':>6} {'argmax%':>8} {'raw%':>6} {'separation%':>12}"
+          + "".join(f"\n{r['budget_s']:>8g} {r['steps']:>6} {100 * r['argmax_in_mask']:>8.1f} "
+                    f"{100 * r['argmax_in_mask_raw']:>6.1f} {100 * r['instance_separation']:>12.1f}"
+                    + ("  <- default" if r["budget_s"] == default_cfg.seconds else "") for r in report["budgets"]),
+          file=sys.stderr)
+    print(f"plot: {png}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(report))
+    return 0
+
+
+if __name__ == "__main__":
+    from rg_core.util import run_json_script
+
+    run_json_script(main)
