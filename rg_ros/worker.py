@@ -306,6 +306,8 @@ class MapWorker:
         from rg_core.map.store import save_map
 
         with self.lock:
+            if self.field is not None and hasattr(self.field, "sync"):
+                self.field.sync()   # the field follows Gaussians added or pruned since its last step
             return save_map(self.mapper, path)
 
     def _acquire(self, timeout: float) -> bool:
@@ -330,6 +332,9 @@ class MapWorker:
             if self._grounder is None:
                 self._grounder = Grounder(self.mapper, self.field, self.cfg)
             return self._grounder.ground(query, mode=mode, max_results=max_results)
+        except ImportError as exc:   # a stage of the pipeline (reasoner, text encoder) has not landed
+            self.log.error("grounding '%s': %s", query[:80], exc)
+            return GroundingResult(False, f"grounding not available: {exc}", query=query)
         except Exception as exc:  # noqa: BLE001 - the service answers, the node lives
             self.log.error("grounding '%s' failed: %s\n%s", query[:80], exc, traceback.format_exc())
             return GroundingResult(False, f"grounding failed: {type(exc).__name__}: {exc}", query=query)
