@@ -86,7 +86,79 @@ def cmd_map(args, cfg) -> dict:
         t = time.perf_counter()
         sset = supervise_map(mapper, make_mask_generator("rgbd"), make_embedder("conse"), progress=not args.quiet)
         report["supervision"] = {**sset.stats(), "seconds_total": round(time.perf_counter() - t, 3)}
+        if args.train_field:
+            from .field import FeatureField
+
+            report["field"] = FeatureField(mapper, cfg.field).train(seconds=args.train_field, progress=not args.quiet)
+    elif args.train_field:
+        raise ValueError("--train-field needs --supervise (the field trains on the 2D supervision)")
     report["map"] = str(save_map(mapper, args.out))
+    return report
+
+
+def _camera_from_args(args, grounder, result):
+    """The camera masks are rendered for: --view I (a keyframe), --pose FILE (JSON with K,
+    cam_to_world [OpenCV axes], width, height), or the result's reference view."""
+    import numpy as np
+
+    kfs = {kf.index: kf for kf in grounder.mapper.keyframes}
+    if args.pose:
+        d = json.loads(Path(args.pose).read_text())
+        try:
+            K, c2w = np.asarray(d["K"], np.float64), np.asarray(d["cam_to_world"], np.float64)
+            w, h = int(d["width"]), int(d["height"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"{args.pose}: pose file needs K [3x3], cam_to_world [4x4], width, height ({exc})") from exc
+        if K.shape != (3, 3) or c2w.shape != (4, 4) or not np.isfinite(K).all() or not np.isfinite(c2w).all():
+            raise ValueError(f"{args.pose}: K must be finite 3x3 and cam_to_world finite 4x4")
+        return K, c2w, w, h
+    idx = args.view if args.view is not None else result.reference_view
+    if idx not in kfs:
+        raise ValueError(f"--view {idx}: not a keyframe of this map; keyframes: {sorted(kfs)[:20]}...")
+    kf = kfs[idx]
+    return kf.K, kf.cam_to_world, kf.size[0], kf.size[1]
+
+
+def cmd_ground(args, cfg) -> dict:
+    from .grounding.pipeline import Grounder
+    from .map.store import load_map
+
+    if args.backend:
+        cfg.reason.backend = args.backend
+    mapper = load_map(args.map)
+    if getattr(mapper, "field", None) is None:
+        raise ValueError(f"{args.map}: the map has no feature field; build it with rg map --supervise --train-field S")
+    grounder = Grounder(mapper, mapper.field, cfg, scene_names=args.name or [])
+    res = grounder.ground(args.query, mode=args.mode, max_results=args.max_results)
+    out = res.to_json()
+    if res.success and (args.out or args.view is not None or args.pose):
+        K, c2w, w, h = _camera_from_args(args, grounder, res)
+        amodal, visible = grounder.masks(res, K, c2w, w, h)
+        out["masks"] = {"width": w, "height": h, "amodal_pixels": int(amodal.sum()), "visible_pixels": int(visible.sum())}
+        if args.out:
+            from .viz.grounding import write_grounding_pngs
+
+            out["pictures"] = write_grounding_pngs(grounder, res, K, c2w, w, h, amodal, visible, Path(args.out))
+    return out
+
+
+def cmd_eval(args, cfg) -> dict:
+    from .eval.grounding import evaluate_queries
+    from .grounding.build import build_grounder
+    from .io.captures import read_scene
+    from .map.store import load_map
+
+    scene = read_scene(args.scene)
+    if not scene.queries or not scene.objects:
+        raise ValueError(f"{args.scene}: rg eval needs queries.json and objects.json (a ReasoningGD scene)")
+    mapper = load_map(args.map) if args.map else None
+    if mapper is not None and args.supervision == "oracle":
+        mapper.field = None  # a map's own field was trained on its own supervision
+    t = time.perf_counter()
+    grounder, report = build_grounder(scene, cfg, args.supervision, args.field_seconds, mapper, progress=not args.quiet)
+    report["seconds_build"] = round(time.perf_counter() - t, 3)
+    report["eval"] = evaluate_queries(grounder, scene, args.implicit, progress=not args.quiet, ablation=args.ablation)
+    report["supervision_kind"] = args.supervision
     return report
 
 
@@ -118,8 +190,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--width", type=_positive, help="working image width")
     p.add_argument("--supervise", action="store_true",
                    help="also compute masks, scales, embeddings and PCA per keyframe (stored in the map)")
+    p.add_argument("--train-field", type=float, metavar="SECONDS",
+                   help="then train the feature field for this many seconds (needs --supervise)")
     common(p)
     p.set_defaults(func=cmd_map)
+
+    p = sub.add_parser("ground", help="ground a query in a map: Gaussian group, boxes, explanation, masks")
+    p.add_argument("map", help="map file from rg map --supervise --train-field S")
+    p.add_argument("query", help="explicit ('coffee mug') or implicit ('something to drink hot tea from')")
+    cam = p.add_mutually_exclusive_group()
+    cam.add_argument("--view", type=int, help="render masks for this keyframe (stream index)")
+    cam.add_argument("--pose", help="JSON file: K, cam_to_world (OpenCV axes), width, height")
+    p.add_argument("--mode", default="auto", choices=("auto", "explicit", "implicit"))
+    p.add_argument("--max-results", type=_positive, default=1, help="several instances ('the cups')")
+    p.add_argument("--backend", help="reasoning backend (text, llama_cpp, openai)")
+    p.add_argument("--name", action="append", help="an object name the scene may hold (repeatable)")
+    p.add_argument("--out", help="folder for PNGs: reference view, relevancy, amodal and visible masks")
+    common(p)
+    p.set_defaults(func=cmd_ground)
+
+    p = sub.add_parser("eval", help="run queries.json on the test views: mIoU, localization, box IoU, timings")
+    p.add_argument("scene", help="ReasoningGD scene folder")
+    p.add_argument("--map", help="map file (default: build one from the scene)")
+    p.add_argument("--supervision", default="default", choices=("default", "oracle"))
+    p.add_argument("--field-seconds", type=float, help="feature-training budget (default: config field.seconds)")
+    p.add_argument("--implicit", type=int, default=1, help="implicit queries per object (default 1)")
+    p.add_argument("--ablation", action="store_true", help="relevancy only / + reasoning / + grouping table")
+    common(p)
+    p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("demo", help="the main job on an embedded default scene")
     p.add_argument("--out", default="rg_demo", help="output folder (default: ./rg_demo)")

@@ -155,15 +155,12 @@ class Grounder:
                            f"< {self.gcfg.min_mask_similarity}")
             res.timings = t
             return res
-        res.reference_view = kf.index
+        res.reference_view, res.scale = kf.index, scale
 
         t2 = time.perf_counter()
         w, h = kf.size
-        fr = self.field.render(kf.K, kf.cam_to_world, w, h)
-        lang = self._decompress(self.field.language(fr.latent, scale))       # [h, w, D]
+        rel, fr = self.relevancy_view(r.target, scale, kf.K, kf.cam_to_world, w, h)
         canon = self.encode(list(CANONICAL))
-        rel = relevancy(lang, target, canon)                                  # [h, w]
-        rel = torch.where(fr.alpha > self.gcfg.mask_alpha, rel, torch.zeros_like(rel))
         peak = int(rel.reshape(-1).argmax())
         py, px = divmod(peak, w)
         q_inst = self.field.instance(fr.latent[py, px], scale)                # [Di]
@@ -208,6 +205,15 @@ class Grounder:
                            f"{scale:.3f} m; the most relevant pixel ({px}, {py}, relevancy {peak_rel:.2f}) lies in "
                            f"a group of {len(res.objects[0].gaussian_ids)} Gaussians.")
         return res
+
+    @torch.no_grad()
+    def relevancy_view(self, target: str, scale: float, K, cam_to_world, width: int, height: int):
+        """Relevancy [h, w] of `target` at `scale` from any camera (0 where the map is not opaque),
+        and the field render it came from."""
+        fr = self.field.render(K, cam_to_world, width, height)
+        lang = self._decompress(self.field.language(fr.latent, scale))       # [h, w, D]
+        rel = relevancy(lang, self.encode([target])[0], self.encode(list(CANONICAL)))
+        return torch.where(fr.alpha > self.gcfg.mask_alpha, rel, torch.zeros_like(rel)), fr
 
     def _more_instances(self, groups: Groups, order: list[int], target, canon, scale, k: int) -> list[int]:
         """Other groups as relevant as the best one ("the cups"): relevancy of each group's mean latent."""

@@ -38,9 +38,10 @@ class GroundingResult:
     objects: list[GroundedObject] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)   # seconds per stage
     reference_view: int = -1           # keyframe index used as the reference view
+    scale: float = 0.0                 # physical scale s* (m) the groups were formed at
 
     def to_json(self) -> dict:
         return {"success": self.success, "message": self.message, "query": self.query, "target": self.target,
                 "explanation": self.explanation, "confidence": float(self.confidence),
-                "reference_view": int(self.reference_view), "objects": [o.to_json() for o in self.objects],
+                "reference_view": int(self.reference_view), "scale": float(self.scale), "objects": [o.to_json() for o in self.objects],
                 "timings": {k: float(v) for k, v in self.timings.items()}}

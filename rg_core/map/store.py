@@ -26,6 +26,8 @@ class MapFileError(ValueError):
 def save_map(mapper: Mapper, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    if getattr(mapper, "field", None) is not None:
+        mapper.field.sync()  # latents follow Gaussians added or pruned since the last training step
     data = {
         "format": FORMAT,
         "version": VERSION,

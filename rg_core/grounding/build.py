@@ -1,0 +1,60 @@
+"""Everything a query needs, built from a scene: map -> 2D supervision -> feature field -> Grounder.
+One function so `rg ground`, `rg eval`, `rg demo`, the benchmarks and the tests build alike."""
+from __future__ import annotations
+
+import sys
+import time
+
+from ..config import RGConfig
+from ..field import FeatureField
+from ..map.mapper import Mapper
+from ..map.run import stream_frames
+from .pipeline import Grounder
+
+
+def supervise(mapper: Mapper, scene, kind: str, text_encoder, progress: bool = False) -> dict:
+    """`default`: the offline mask generator and ConSE embedder; `oracle`: ground-truth visible masks
+    and object names (measures the 3D part alone). Returns per-stage statistics."""
+    t = time.perf_counter()
+    if kind == "oracle":
+        from ..field.oracle import oracle_supervision
+
+        if not scene.objects:
+            raise ValueError(f"{scene.root}: oracle supervision needs ground-truth objects (objects.json)")
+        sset = oracle_supervision(mapper, scene.train, scene.objects, text_encoder)
+    elif kind == "default":
+        from ..perception.embed import make_embedder
+        from ..perception.masks import make_mask_generator
+        from ..perception.supervision import supervise_map
+
+        sset = supervise_map(mapper, make_mask_generator("rgbd"), make_embedder("conse"), progress=progress)
+    else:
+        raise ValueError(f"supervision must be 'default' or 'oracle', got {kind!r}")
+    return {**sset.stats(), "seconds": round(time.perf_counter() - t, 3)}
+
+
+def build_grounder(scene, cfg: RGConfig, supervision: str = "default", field_seconds: float | None = None,
+                   mapper: Mapper | None = None, progress: bool = False, reasoner=None) -> tuple[Grounder, dict]:
+    """Map the scene's training frames (unless `mapper` is given), supervise, train the field for
+    `field_seconds` (default cfg.field.seconds) and return a Grounder plus timings."""
+    from ..perception.embed import MiniLMText
+
+    report: dict = {}
+    t = time.perf_counter()
+    if mapper is None:
+        mapper = Mapper(cfg.map)
+        stream_frames(mapper, scene.train, progress=progress)
+        mapper.refine(cfg.map.final_iters)
+        report["map"] = mapper.stats()
+    report["seconds_map"] = round(time.perf_counter() - t, 3)
+    text = MiniLMText()
+    if mapper.supervision is None or supervision == "oracle":
+        report["supervision"] = supervise(mapper, scene, supervision, text, progress)
+    field = getattr(mapper, "field", None) or FeatureField(mapper, cfg.field)
+    secs = cfg.field.seconds if field_seconds is None else field_seconds
+    if secs > 0:
+        report["field"] = field.train(seconds=secs, progress=progress)
+    print(f"grounding ready: {len(mapper.gaussians)} Gaussians, {len(mapper.keyframes)} keyframes, "
+          f"{field.steps} field steps", file=sys.stderr)
+    names = [o.name for o in scene.objects]
+    return Grounder(mapper, field, cfg, reasoner=reasoner, text_encoder=text, scene_names=names), report
