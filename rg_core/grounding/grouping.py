@@ -33,7 +33,7 @@ def hdbscan_labels(x: np.ndarray, min_cluster_size: int = 10, eps: float = 0.01)
 
 
 def cluster_instances(features: torch.Tensor, max_points: int = 4000, min_cluster_size: int = 10,
-                      eps: float = 0.01, assign_quantile: float = 0.95, seed: int = 0) -> Groups:
+                      eps: float = 0.01, assign_quantile: float = 1.0, seed: int = 0) -> Groups:
     """features [N, Di] (unit rows) -> Groups. max_points <= 0 clusters everything (the paper)."""
     import time
 

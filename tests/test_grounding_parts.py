@@ -1,0 +1,90 @@
+"""Grounding building blocks: LERF relevancy, boxes, HDBSCAN grouping (subsample vs all)."""
+import numpy as np
+import pytest
+import torch
+
+from rg_core.grounding.boxes import box_iou_aabb, group_boxes, robust_inliers
+from rg_core.grounding.grouping import cluster_instances, hdbscan_labels
+from rg_core.grounding.relevancy import relevancy
+
+
+def test_relevancy_matches_the_lerf_formula_and_saturates_safely():
+    g = torch.Generator().manual_seed(0)
+    f, q, c = torch.randn(50, 8, generator=g), torch.randn(8, generator=g), torch.randn(4, 8, generator=g)
+    fn, qn, cn = (torch.nn.functional.normalize(t, dim=-1) for t in (f, q, c))
+    want = torch.stack([min(torch.exp(x @ qn) / (torch.exp(x @ qn) + torch.exp(x @ ci)) for ci in cn) for x in fn])
+    torch.testing.assert_close(relevancy(f, q, c), want)
+    # Huge, tiny and zero features stay finite and in [0, 1].
+    ext = torch.cat([f * 1e30, f * 1e-30, torch.zeros(1, 8)])
+    r = relevancy(ext, q, c)
+    assert torch.isfinite(r).all() and (r >= 0).all() and (r <= 1).all()
+    # A feature equal to the query beats the canonical phrases.
+    assert float(relevancy(q[None], q, c)[0]) > 0.5
+    with pytest.raises(ValueError, match="one D"):
+        relevancy(f, torch.randn(7), c)
+
+
+def test_boxes_of_a_rotated_cuboid_and_degenerate_groups():
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-1, 1, (4000, 3)) * np.array([0.2, 0.05, 0.1])
+    a = np.deg2rad(30)
+    R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    world = pts @ R.T + np.array([1.0, 2.0, 0.5])
+    lo, hi, c, rot, ext = group_boxes(world)
+    np.testing.assert_allclose(lo, world.min(0)), np.testing.assert_allclose(hi, world.max(0))
+    np.testing.assert_allclose(c, [1.0, 2.0, 0.5], atol=0.02)
+    np.testing.assert_allclose(sorted(ext), sorted([0.4, 0.1, 0.2]), atol=0.03)
+    assert abs(np.linalg.det(rot) - 1) < 1e-6
+    for degenerate in (world[:1], world[:3], np.c_[pts[:, :2], np.zeros(len(pts))]):
+        out = group_boxes(degenerate)
+        assert all(np.isfinite(v).all() for v in out)
+    with pytest.raises(ValueError, match="finite points"):
+        group_boxes(np.array([[0, 0, np.nan]]))
+    assert box_iou_aabb([0, 0, 0], [1, 1, 1], [0, 0, 0], [1, 1, 1]) == 1.0
+    assert box_iou_aabb([0, 0, 0], [1, 1, 1], [2, 2, 2], [3, 3, 3]) == 0.0
+    assert abs(box_iou_aabb([0, 0, 0], [2, 1, 1], [1, 0, 0], [3, 1, 1]) - 1 / 3) < 1e-9
+    # Stray points far away do not survive the robust filter.
+    keep = robust_inliers(np.r_[world, [[50.0, 50.0, 50.0]]])
+    assert keep[:-1].mean() > 0.99 and not keep[-1]
+
+
+def _blobs(n_per: int, k: int, dim: int = 16, spread: float = 0.05, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    centres = torch.nn.functional.normalize(torch.randn(k, dim, generator=g), dim=-1)
+    x = centres.repeat_interleave(n_per, 0) + spread * torch.randn(k * n_per, dim, generator=g)
+    return torch.nn.functional.normalize(x, dim=-1), torch.arange(k).repeat_interleave(n_per)
+
+
+def test_hdbscan_with_the_papers_parameters_finds_separated_groups():
+    x, truth = _blobs(60, 5)
+    labels = hdbscan_labels(x.numpy())
+    from sklearn.metrics import adjusted_rand_score
+
+    assert adjusted_rand_score(truth.numpy(), labels) > 0.95
+    # Fewer points than min_cluster_size: everything is noise, never one forced cluster.
+    assert (hdbscan_labels(x[:5].numpy()) == -1).all()
+
+
+def test_clustering_a_subsample_agrees_with_clustering_all():
+    from sklearn.metrics import adjusted_rand_score
+
+    x, truth = _blobs(1500, 6, seed=3)
+    full = cluster_instances(x, max_points=0)
+    sub = cluster_instances(x, max_points=1500, seed=0)
+    assert full.clustered == len(x) and sub.clustered == 1500
+    agree = adjusted_rand_score(full.labels, sub.labels)
+    assert agree > 0.95, agree
+    assert adjusted_rand_score(truth.numpy(), sub.labels) > 0.95
+    assert len(sub.centres) == 6
+    torch.testing.assert_close(sub.centres.norm(dim=-1), torch.ones(6))
+    # Outliers far from every group stay noise after assignment.
+    far = torch.nn.functional.normalize(torch.randn(3, 16, generator=torch.Generator().manual_seed(9)), dim=-1)
+    with_far = cluster_instances(torch.cat([x, -sub.centres[:1].repeat(3, 1) + 0 * far]), max_points=1500)
+    assert (with_far.labels[-3:] == -1).all()
+
+
+def test_cluster_instances_survives_nan_features():
+    x, _ = _blobs(30, 3)
+    x[0] = float("nan")
+    out = cluster_instances(x, max_points=0)
+    assert out.labels.shape == (90,) and torch.isfinite(out.centres).all()
