@@ -1,6 +1,6 @@
 """Feature field: oracle-supervised error against training time on a synthetic scene.
 
-    python benchmarks/bench_field.py [--scene DIR] [--budgets 2 5 10 20] [--out DIR] [--json]
+    python benchmarks/bench_field.py [--scene DIR] [--budgets 5 10 20 40 80] [--out DIR] [--json]
 
 Without --scene it generates a 40-view 320x240 scene with 7 objects (seed 0) with `rg synth`'s
 generator, maps it with the default MapConfig (`map_scene`), builds oracle supervision (ground-
@@ -59,7 +59,7 @@ def plot(rows: list[dict], default_budget: float, out_png: Path) -> None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", help="scene folder (default: generate 40 views 320x240, 7 objects)")
-    ap.add_argument("--budgets", type=float, nargs="+", default=[2, 5, 10, 20])
+    ap.add_argument("--budgets", type=float, nargs="+", default=[5, 10, 20, 40, 80])
     ap.add_argument("--threads", type=int, default=1, help="torch intra-op threads (1 is fastest on 2 shared cores)")
     ap.add_argument("--random-names", action="store_true", help="random name vectors instead of MiniLM")
     ap.add_argument("--out", default="bench_out")
