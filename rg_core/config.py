@@ -150,6 +150,9 @@ class FieldConfig:
     """Weight of L_lang."""
     lambda_instance: float = 0.1
     """Weight of L_in."""
+    lambda_consistency: float = 0.1
+    """Pull each sampled pixel's dominant Gaussian latent to the pixel's blended latent (grouping
+    applies the mappers per Gaussian; training sees blends)."""
     lr_latents: float = 0.01
     """Adam learning rate of the per-Gaussian latents (only rows seen by the step move)."""
     lr_mappers: float = 0.002
@@ -186,6 +189,11 @@ class GroundConfig:
     """HDBSCAN min_cluster_size (paper: 10)."""
     cluster_eps: float = 0.01
     """HDBSCAN cluster_selection_epsilon (paper: 0.01)."""
+    cluster_method: str = "leaf"
+    """HDBSCAN cluster_selection_method: "leaf" (finest clusters; one object each on the synthetic
+    scenes, where "eom", scikit-learn's default, merged objects into 2-3 groups) or "eom"."""
+    grow_groups: bool = True
+    """Add HDBSCAN's noise Gaussians that lie within the chosen group's radius in feature space."""
     multi_instance_ratio: float = 0.9
     """With max_results > 1, other groups whose relevancy reaches this share of the best one are returned."""
     mask_alpha: float = 0.5

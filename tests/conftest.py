@@ -53,3 +53,29 @@ def conse_embedder():
     from rg_core.perception.embed import make_embedder
 
     return make_embedder("conse", top_k=10)
+
+
+@pytest.fixture(scope="session")
+def oracle_field(synth_scene):
+    """The session scene mapped at 160 px (stride 2: objects span 10-20 px), ground-truth masks and
+    fixed random name vectors as supervision, and a feature field trained 200 steps (one thread)."""
+    import torch
+
+    from rg_core.config import FieldConfig, MapConfig
+    from rg_core.field import FeatureField
+    from rg_core.field.oracle import RandomNameEmbedding, oracle_supervision
+    from rg_core.map.mapper import Mapper
+    from rg_core.map.run import stream_frames
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        embed = RandomNameEmbedding(dim=96, seed=0)
+        mapper = Mapper(MapConfig(width=160, iters_per_keyframe=5, final_iters=0, seed_stride=2))
+        stream_frames(mapper, synth_scene.train, progress=False)
+        oracle_supervision(mapper, synth_scene.train, synth_scene.objects, embed)
+        field = FeatureField(mapper, FieldConfig())
+        field.train(iters=200)
+    finally:
+        torch.set_num_threads(n)
+    return field, embed

@@ -215,7 +215,7 @@ class FeatureField:
             K, tw, th, masks, scales, weights = self._train_view(kf)
             targets = self.mapper.supervision.compressed(kf.index)  # [M, 64] in the current basis
             lat = self.latents.clone().requires_grad_(True)
-            out = self._render(lat, K, kf.cam_to_world, tw, th)
+            out = self._render(lat, K, kf.cam_to_world, tw, th, return_ids=c.lambda_consistency > 0)
             P = min(c.rays_per_step, tw * th)
             P = min(P, int((weights > 0).sum()))
             pix = torch.multinomial(weights, P, replacement=False, generator=self._rng)
@@ -236,6 +236,14 @@ class FeatureField:
                 feat = self.instance_mlp(f, self.scale_tf(s))
                 l_in = l_in + instance_loss(feat, shares_group(members, scales, s), c.margin) / c.scales_per_step
             loss = c.lambda_language * l_lang + c.lambda_instance * l_in
+            if c.lambda_consistency > 0 and out.ids is not None:
+                # Grouping applies the mappers to each Gaussian's own latent, training to blended
+                # latents: pull the dominant Gaussian of each sampled pixel to the pixel's latent.
+                dom = out.ids.reshape(-1)[pix]
+                hit = dom >= 0
+                if bool(hit.any()):
+                    l_con = ((lat[dom[hit]] - f[hit].detach()) ** 2).sum(-1).mean()
+                    loss = loss + c.lambda_consistency * l_con
             self.mlp_optim.zero_grad(set_to_none=True)
             loss.backward()
             for p in list(self.language_mlp.parameters()) + list(self.instance_mlp.parameters()):
@@ -295,11 +303,11 @@ class FeatureField:
 
     # ---------------------------------------------------------------------------- queries
 
-    def _render(self, latents: torch.Tensor, K, c2w, w: int, h: int):
+    def _render(self, latents: torch.Tensor, K, c2w, w: int, h: int, return_ids: bool = False):
         g = self.mapper.gaussians
         ch = torch.cat([g.colors.detach(), latents], 1)  # [N, 3 + D]: colour and latent in one call
         return rasterize(g.means.detach(), g.scales.detach(), g.quats.detach(), g.opacities.detach(), ch,
-                         self.mapper.camera(K, c2w, w, h))
+                         self.mapper.camera(K, c2w, w, h), return_ids=return_ids)
 
     @torch.no_grad()
     def render(self, K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int) -> FieldRender:

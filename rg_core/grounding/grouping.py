@@ -19,21 +19,54 @@ class Groups:
     centres: torch.Tensor    # [G, Di] unit mean feature per cluster
     clustered: int           # how many Gaussians HDBSCAN saw
     seconds: float
+    radius: torch.Tensor | None = None    # [G] cosine distance of a cluster's farthest member to its centre
+    features: torch.Tensor | None = None  # [N, Di] the clustered features (unit rows)
+
+    def members(self, g: int, grow: bool = True) -> np.ndarray:
+        """Gaussians of group g; with `grow`, also any Gaussian (noise included) as close to the
+        centre as the group's own farthest member: HDBSCAN leaves the fringe of a group as noise."""
+        m = self.labels == g
+        if grow and self.features is not None and self.radius is not None:
+            d = 1.0 - (self.features @ self.centres[g]).numpy()
+            m |= (self.labels == -1) & (d <= float(self.radius[g]) + 1e-6)
+        return np.nonzero(m)[0]
+
+    def ball(self, query: torch.Tensor, radius: float | None = None) -> np.ndarray:
+        """Gaussians within `radius` (default: the median cluster radius) of a feature [Di]: the
+        group of a query whose feature lies in no cluster (HDBSCAN left the object as noise)."""
+        if self.features is None:
+            return np.zeros(0, np.int64)
+        if radius is None:
+            radius = float(self.radius.median()) if self.radius is not None and len(self.radius) else 0.05
+        d = 1.0 - (self.features @ torch.nn.functional.normalize(query.float(), dim=-1)).numpy()
+        return np.nonzero(d <= radius)[0]
+
+    def containing(self, query: torch.Tensor) -> int:
+        """The cluster whose radius holds the feature [Di] (the most similar if several), else -1."""
+        if not len(self.centres):
+            return -1
+        q = torch.nn.functional.normalize(query.float(), dim=-1)
+        d = 1.0 - self.centres @ q
+        inside = d <= self.radius + 1e-6
+        if not bool(inside.any()):
+            return -1
+        return int(torch.where(inside, d, torch.full_like(d, 9.0)).argmin())
 
 
-def hdbscan_labels(x: np.ndarray, min_cluster_size: int = 10, eps: float = 0.01) -> np.ndarray:
-    """The paper's HDBSCAN (allow_single_cluster=False; noise stays noise): x [M, Di] -> [M]."""
+def hdbscan_labels(x: np.ndarray, min_cluster_size: int = 10, eps: float = 0.01, method: str = "eom") -> np.ndarray:
+    """The paper's HDBSCAN (allow_single_cluster=False; noise stays noise): x [M, Di] -> [M].
+    `method` "eom" is scikit-learn's default (the paper's); "leaf" keeps the finest clusters."""
     from sklearn.cluster import HDBSCAN
 
     if len(x) < max(2, min_cluster_size):
         return np.full(len(x), -1, np.int64)
     hd = HDBSCAN(min_cluster_size=min_cluster_size, cluster_selection_epsilon=eps, allow_single_cluster=False,
-                 copy=True)
+                 cluster_selection_method=method, copy=True)
     return hd.fit_predict(x.astype(np.float64)).astype(np.int64)
 
 
 def cluster_instances(features: torch.Tensor, max_points: int = 4000, min_cluster_size: int = 10,
-                      eps: float = 0.01, assign_quantile: float = 1.0, seed: int = 0) -> Groups:
+                      eps: float = 0.01, assign_quantile: float = 1.0, seed: int = 0, method: str = "eom") -> Groups:
     """features [N, Di] (unit rows) -> Groups. max_points <= 0 clusters everything (the paper)."""
     import time
 
@@ -46,27 +79,27 @@ def cluster_instances(features: torch.Tensor, max_points: int = 4000, min_cluste
         idx = np.arange(N)
     else:
         idx = np.sort(np.random.default_rng(seed).choice(N, max_points, replace=False))
-    sub = hdbscan_labels(f[idx].numpy(), min_cluster_size, eps)
+    sub = hdbscan_labels(f[idx].numpy(), min_cluster_size, eps, method)
     labels = np.full(N, -1, np.int64)
     labels[idx] = sub
     G = int(sub.max()) + 1 if len(sub) else 0
     if G == 0:
-        return Groups(labels, torch.zeros(0, f.shape[1]), len(idx), time.perf_counter() - t0)
+        return Groups(labels, torch.zeros(0, f.shape[1]), len(idx), time.perf_counter() - t0, torch.zeros(0), f)
     sub_t = torch.from_numpy(sub)
     fi = f[torch.from_numpy(idx)]
     centres = torch.zeros(G, f.shape[1]).index_add_(0, sub_t.clamp(min=0), fi * (sub_t >= 0)[:, None].float())
     centres = torch.nn.functional.normalize(centres, dim=-1, eps=1e-8)
+    # Radius per cluster: how far its own members lie from its centre.
+    member = sub_t >= 0
+    d_own = 1.0 - (fi[member] * centres[sub_t[member]]).sum(-1)
+    radius = torch.zeros(G)
+    for g in range(G):
+        dg = d_own[sub_t[member] == g]
+        radius[g] = torch.quantile(dg, assign_quantile) if len(dg) else 0.0
     if len(idx) < N:
-        # Radius per cluster: how far its own members lie from its centre.
-        member = sub_t >= 0
-        d_own = 1.0 - (fi[member] * centres[sub_t[member]]).sum(-1)
-        radius = torch.zeros(G)
-        for g in range(G):
-            dg = d_own[sub_t[member] == g]
-            radius[g] = torch.quantile(dg, assign_quantile) if len(dg) else 0.0
         rest = np.setdiff1d(np.arange(N), idx)
         sim = f[torch.from_numpy(rest)] @ centres.T           # [R, G]
         best, arg = sim.max(-1)
         ok = (1.0 - best) <= radius[arg] + 1e-6
         labels[rest] = np.where(ok.numpy(), arg.numpy(), -1)
-    return Groups(labels, centres, len(idx), time.perf_counter() - t0)
+    return Groups(labels, centres, len(idx), time.perf_counter() - t0, radius, f)

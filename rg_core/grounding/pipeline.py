@@ -99,16 +99,20 @@ class Grounder:
     def reference_view(self, target: torch.Tensor):
         """Keyframe whose mask embedding is most similar to the target text [D]:
         -> (keyframe, mask index, similarity, physical scale s*)."""
-        best = (None, -1, -2.0, 0.0)
         by_index = {kf.index: kf for kf in self.mapper.keyframes}
+        cands = []  # (similarity, mask pixels, keyframe, mask index, scale)
         for k, sup in self.mapper.supervision.by_keyframe.items():
             if k not in by_index or not len(sup.embeddings):
                 continue
             sims = torch.nn.functional.normalize(sup.embeddings.float(), dim=-1) @ target
             i = int(sims.argmax())
-            if float(sims[i]) > best[2]:
-                best = (by_index[k], i, float(sims[i]), float(sup.scales[i]))
-        return best
+            cands.append((float(sims[i]), int(sup.masks[i].sum()), by_index[k], i, float(sup.scales[i])))
+        if not cands:
+            return None, -1, -2.0, 0.0
+        # Among views about as similar as the best, the one that sees the target largest.
+        top = max(c[0] for c in cands)
+        s, _, kf, i, scale = max((c for c in cands if c[0] >= top - 0.02), key=lambda c: c[1])
+        return kf, i, s, scale
 
     def groups(self, scale: float) -> Groups:
         """Clusters of instance features at one scale (cached until the map or field changes)."""
@@ -117,7 +121,7 @@ class Grounder:
             g = self.gcfg
             feats = self.field.gaussian_instance(scale)
             self._groups = {key: cluster_instances(feats, g.max_cluster_points, g.min_cluster_size, g.cluster_eps,
-                                                   seed=g.seed)}
+                                                   seed=g.seed, method=g.cluster_method)}
         return self._groups[key]
 
     def _decompress(self, z: torch.Tensor) -> torch.Tensor:  # [..., k] -> [..., D]
@@ -161,7 +165,13 @@ class Grounder:
         w, h = kf.size
         rel, fr = self.relevancy_view(r.target, scale, kf.K, kf.cam_to_world, w, h)
         canon = self.encode(list(CANONICAL))
-        peak = int(rel.reshape(-1).argmax())
+        # Features bleed a pixel or two over object borders: take the peak of the 3x3 mean, and
+        # inside the reference mask (the 2D evidence that chose s*) when it has rendered pixels.
+        smooth = torch.nn.functional.avg_pool2d(rel[None, None], 3, 1, 1, count_include_pad=False)[0, 0]
+        ref_mask = torch.from_numpy(self.mapper.supervision.by_keyframe[kf.index].masks[mi])
+        if ref_mask.shape == smooth.shape and bool((ref_mask & (fr.alpha > self.gcfg.mask_alpha)).any()):
+            smooth = torch.where(ref_mask, smooth, torch.full_like(smooth, -1.0))
+        peak = int(smooth.reshape(-1).argmax())
         py, px = divmod(peak, w)
         q_inst = self.field.instance(fr.latent[py, px], scale)                # [Di]
         t["relevancy"] = time.perf_counter() - t2
@@ -170,25 +180,33 @@ class Grounder:
         groups = self.groups(scale)
         t["cluster"] = time.perf_counter() - t3
         t4 = time.perf_counter()
-        if not len(groups.centres):
-            res.message = f"no instance groups at scale {scale:.3f} m (HDBSCAN found only noise)"
-            res.timings = t
-            return res
         sim = groups.centres @ q_inst                                          # [G]
         order = torch.argsort(sim, descending=True).tolist()
-        chosen = [order[0]]
-        if max_results > 1:
+        home = groups.containing(q_inst)
+        if home >= 0:
+            order.remove(home)
+            order.insert(0, home)
+        chosen = [order[0]] if order else []
+        if max_results > 1 and order:
             chosen = self._more_instances(groups, order, target, canon, scale, max_results)
         g = self.mapper.gaussians
         means, colors = g.means.detach().numpy(), (g.colors.detach().clamp(0, 1) * 255).round().byte().numpy()
         peak_rel = float(rel[py, px])
-        for rank, gi in enumerate(chosen):
-            ids = np.nonzero(groups.labels == gi)[0]
+        found = []
+        if home < 0:
+            # The most relevant pixel's feature lies in no cluster: HDBSCAN left that object as noise.
+            # Its group is then the Gaussians around that feature (as tight as a typical cluster).
+            ball = groups.ball(q_inst)
+            if len(ball) >= self.gcfg.min_cluster_size:
+                found.append((ball, float(sim.max()) if len(sim) else 1.0))
+            chosen = chosen[1:] if max_results > 1 else []
+        found += [(groups.members(gi, grow=self.gcfg.grow_groups), float(max(sim[gi], 0.0))) for gi in chosen]
+        for ids, s_g in found[:max_results]:
             ids = ids[robust_inliers(means[ids], self.gcfg.outlier_mads)]
             if not len(ids):
                 continue
             lo, hi, c, R, ext = group_boxes(means[ids])
-            conf = float(r.confidence) * peak_rel * float(max(sim[gi], 0.0))
+            conf = float(r.confidence) * peak_rel * s_g
             res.objects.append(GroundedObject(ids.astype(np.int64), means[ids].astype(np.float32), colors[ids],
                                               lo, hi, c, R, ext, conf))
         t["group"] = time.perf_counter() - t4

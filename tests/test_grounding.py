@@ -1,0 +1,86 @@
+"""End to end grounding on the session scene with oracle supervision: the grounded group's box and
+masks match the ground truth; absent and bad queries fail with a reason; masks for any camera."""
+import numpy as np
+import pytest
+
+from rg_core.config import RGConfig
+from rg_core.eval.grounding import evaluate_queries, iou
+from rg_core.grounding.boxes import box_iou_aabb
+from rg_core.grounding.pipeline import Grounder
+
+
+@pytest.fixture(scope="module")
+def grounder(oracle_field, synth_scene):
+    from rg_core.perception.reasoner import TextReasoner
+
+    field, embed = oracle_field
+    return Grounder(field.mapper, field, RGConfig(), reasoner=TextReasoner(), text_encoder=embed,
+                    scene_names=[o.name for o in synth_scene.objects])
+
+
+def test_explicit_queries_find_each_object(grounder, synth_scene):
+    ious, vis = [], []
+    for o in synth_scene.objects:
+        r = grounder.ground(o.name, mode="explicit")
+        assert r.success, r.message
+        assert r.target == o.name and r.objects and 0.0 <= r.confidence <= 1.0
+        ob = r.objects[0]
+        assert len(ob.gaussian_ids) == len(ob.points) == len(ob.colors) > 0
+        assert np.isfinite(ob.points).all() and ob.colors.dtype == np.uint8
+        ious.append(box_iou_aabb(ob.aabb_min, ob.aabb_max, o.aabb_min, o.aabb_max))
+        assert set(r.timings) >= {"reason", "reference_view", "relevancy", "cluster", "group", "total"}
+    print("box IoU per object", np.round(ious, 3))
+    # Gaussians cover only the observed surface of an object (its ground-truth box is whole), and
+    # this scene is tiny (objects span 10-20 px): every group must overlap its object's box.
+    assert min(ious) > 0.05 and np.mean(ious) > 0.15, ious
+
+
+def test_masks_on_test_views(grounder, synth_scene):
+    ev = evaluate_queries(grounder, synth_scene, implicit_per_object=0)
+    print(ev["explicit"], ev["box_iou"])
+    assert ev["explicit"]["pairs"] >= 6
+    # Measured on this 160x120 scene after 200 field steps: visible 41-46, amodal 33; a wrong group
+    # scores about 0 (benchmarks/bench_grounding.py reports the full-size figures).
+    assert ev["explicit"]["target_accuracy"] == 100.0 and ev["explicit"]["success_rate"] == 100.0
+    assert ev["explicit"]["miou_visible"] >= 30, ev["explicit"]
+    assert ev["explicit"]["miou_amodal"] >= 25, ev["explicit"]
+
+
+def test_amodal_mask_covers_the_visible_mask(grounder, synth_scene):
+    o = synth_scene.objects[0]
+    r = grounder.ground(o.name, mode="explicit")
+    f = synth_scene.test[0]
+    amodal, visible = grounder.masks(r, f.intrinsics.K, f.cam_to_world, 160, 120)
+    assert amodal.shape == visible.shape == (120, 160) and amodal.dtype == bool
+    if visible.any():
+        assert (visible & amodal).sum() >= 0.9 * visible.sum()
+    # A camera looking away sees nothing of the group.
+    away = f.cam_to_world.copy()
+    away[:3, :3] = away[:3, :3] @ np.diag([-1.0, 1.0, -1.0])
+    a2, v2 = grounder.masks(r, f.intrinsics.K, away, 160, 120)
+    assert not v2.any()
+
+
+@pytest.mark.parametrize("query, why", [("", "empty query"), ("x" * 1_000_000, "characters long"),
+                                         ("   ", "empty query")])
+def test_bad_queries_fail_with_a_reason(grounder, query, why):
+    r = grounder.ground(query)
+    assert not r.success and why in r.message
+
+
+def test_absent_object_is_not_grounded(grounder):
+    r = grounder.ground("a giraffe")
+    assert not r.success and r.message and not r.objects
+
+
+def test_before_training_the_grounder_says_why(synth_scene):
+    from rg_core.map.mapper import Mapper
+
+    r = Grounder(Mapper(), None, RGConfig(), reasoner=object(), text_encoder=lambda t: None).ground("mug")
+    assert not r.success and "empty" in r.message
+
+
+def test_iou_helper():
+    a = np.zeros((4, 4), bool)
+    a[:2] = True
+    assert iou(a, a) == 1.0 and iou(a, ~a) == 0.0 and iou(np.zeros_like(a), np.zeros_like(a)) == 1.0
