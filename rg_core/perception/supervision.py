@@ -23,20 +23,24 @@ class KeyframeSupervision:
     embeddings: torch.Tensor   # [M, D] raw image-text embeddings (unit rows)
     seconds: dict = field(default_factory=dict)  # per stage: masks, scales, embed
     dropped: int = 0           # masks without a measurable scale or crop
+    embeddings_view: torch.Tensor | None = None  # [M, D] per-view embeddings once `embeddings` hold
+                                                 # multi-view means (perception.multiview)
 
     def state_dict(self) -> dict:
         M, h, w = self.masks.shape
         return {"shape": [M, h, w], "masks": torch.from_numpy(np.packbits(self.masks.reshape(M, -1), axis=1)),
                 "scores": torch.from_numpy(self.scores), "levels": torch.from_numpy(self.levels.astype(np.int8)),
                 "scales": torch.from_numpy(self.scales), "embeddings": self.embeddings.float(),
-                "seconds": {k: float(v) for k, v in self.seconds.items()}, "dropped": int(self.dropped)}
+                "seconds": {k: float(v) for k, v in self.seconds.items()}, "dropped": int(self.dropped),
+                "embeddings_view": self.embeddings_view.float() if self.embeddings_view is not None else None}
 
     @staticmethod
     def from_state_dict(d: dict) -> "KeyframeSupervision":
         M, h, w = (int(v) for v in d["shape"])
         masks = np.unpackbits(d["masks"].numpy(), axis=1, count=h * w).reshape(M, h, w).astype(bool)
         return KeyframeSupervision(masks, d["scores"].numpy(), d["levels"].numpy(), d["scales"].numpy(),
-                                   d["embeddings"].float(), dict(d.get("seconds", {})), int(d.get("dropped", 0)))
+                                   d["embeddings"].float(), dict(d.get("seconds", {})), int(d.get("dropped", 0)),
+                                   d["embeddings_view"].float() if d.get("embeddings_view") is not None else None)
 
 
 def build_supervision(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, generator: MaskGenerator,

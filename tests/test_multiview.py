@@ -1,0 +1,43 @@
+"""Multi-view consistency: masks of one object in different keyframes are associated through the
+map's Gaussians and share one embedding; noisy per-view embeddings get more accurate."""
+import numpy as np
+import torch
+
+from rg_core.field.oracle import oracle_supervision
+from rg_core.perception.multiview import aggregate_multiview, associate
+
+
+def test_masks_of_one_object_share_an_embedding(oracle_field, synth_scene):
+    field, embed = oracle_field
+    mapper = field.mapper
+    saved = mapper.supervision
+    try:
+        sset = oracle_supervision(mapper, synth_scene.train, synth_scene.objects, embed, group=False)
+        names = sorted({o.name for o in synth_scene.objects})
+        name_emb = torch.nn.functional.normalize(embed(names).float(), dim=-1)
+        truth = {}
+        g = torch.Generator().manual_seed(0)
+        for k, sup in sset.by_keyframe.items():
+            # Which object each mask is, then a noisy per-view embedding of it (a weak classifier).
+            truth[k] = [names[int((e @ name_emb.T).argmax())] for e in sup.embeddings]
+            noisy = sup.embeddings + 0.12 * torch.randn(sup.embeddings.shape, generator=g) * sup.embeddings.shape[1] ** 0.5 / 3
+            sup.embeddings = torch.nn.functional.normalize(noisy, dim=-1)
+        acc = lambda: np.mean([names[int((e @ name_emb.T).argmax())] == t for k, s in sset.by_keyframe.items()
+                               for e, t in zip(s.embeddings, truth[k])])
+        before = acc()
+        keys, labels = associate(mapper, sset)
+        # Components never mix two objects.
+        for lab in np.unique(labels):
+            objs = {truth[k][m] for (k, m), l in zip(keys, labels) if l == lab}
+            assert len(objs) == 1, objs
+        stats = aggregate_multiview(mapper, sset)
+        after = acc()
+        print(f"name top-1 per view {before:.3f} -> multi-view {after:.3f}", stats)
+        assert stats["objects"] <= 3 * len(synth_scene.objects) and stats["views_per_object_mean"] >= 3  # measured: 11 groups, 6.4 views each
+        assert after >= before and after >= 0.9
+        for k, sup in sset.by_keyframe.items():
+            assert sup.embeddings_view is not None and sup.embeddings_view.shape == sup.embeddings.shape
+            torch.testing.assert_close(sup.embeddings.norm(dim=-1), torch.ones(len(sup.embeddings)))
+        assert sset.pca.pca is not None and sset.pca.pca.n_fit == sum(len(s.embeddings) for s in sset.by_keyframe.values())
+    finally:
+        mapper.supervision = saved
