@@ -27,7 +27,11 @@ def supervise(mapper: Mapper, scene, kind: str, text_encoder, progress: bool = F
         from ..perception.masks import make_mask_generator
         from ..perception.supervision import supervise_map
 
+        from ..perception.multiview import aggregate_multiview
+
         sset = supervise_map(mapper, make_mask_generator("rgbd"), make_embedder("conse"), progress=progress)
+        stats = aggregate_multiview(mapper, sset)  # one embedding per object across keyframes
+        return {**sset.stats(), "multiview": stats, "seconds": round(time.perf_counter() - t, 3)}
     else:
         raise ValueError(f"supervision must be 'default' or 'oracle', got {kind!r}")
     return {**sset.stats(), "seconds": round(time.perf_counter() - t, 3)}

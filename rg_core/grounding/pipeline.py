@@ -46,9 +46,9 @@ class Grounder:
     @property
     def reasoner(self):
         if self._reasoner is None:
-            from ..perception.reasoner import make_reasoner
+            from ..perception.reasoner import reasoner_from_config
 
-            self._reasoner = make_reasoner(self.cfg.reason.backend, cfg=self.cfg.reason, text_encoder=self.encode)
+            self._reasoner = reasoner_from_config(self.cfg.reason)
         return self._reasoner
 
     def encode(self, texts: list[str]) -> torch.Tensor:
