@@ -211,7 +211,9 @@ class TextReasoner(Reasoner):
         """The background concept the query resembles more than any vocabulary name, if any."""
         if not self._bg_names:
             return None
-        bg = self.text([NAME_TEMPLATE.format(b) for b in self._bg_names])
+        if getattr(self, "_bg", None) is None:  # embedded once per reasoner
+            self._bg = self.text([NAME_TEMPLATE.format(b) for b in self._bg_names])
+        bg = self._bg
         keep = (bg @ names_emb.T).max(1).values < BACKGROUND_EXCLUDE
         if not keep.any():
             return None
