@@ -52,6 +52,35 @@ def cmd_synth(args, cfg) -> dict:
     return summary
 
 
+def _floats(text: str) -> tuple:
+    try:
+        return tuple(float(v) for v in text.split(","))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from exc
+
+
+def cmd_report(args, cfg) -> dict:
+    from .report import SECTIONS, full_budgets, tiny_budgets
+    from .report.runner import run_report
+
+    over = {}
+    if args.map_iters:
+        over["map_iters"] = tuple(int(v) for v in args.map_iters)
+    if args.field_seconds:
+        over["field_seconds"] = args.field_seconds
+    if args.frames:
+        over["frames"] = tuple(int(v) for v in args.frames)
+    if args.sizes:
+        over["sizes"] = tuple(_size(v) for v in args.sizes.split(","))
+    budgets = (tiny_budgets if args.tiny else full_budgets)(**over)
+    sections = tuple(args.sections.split(",")) if args.sections else SECTIONS
+    rep = run_report(args.scene, args.out, budgets, sections, cfg, progress=not args.quiet,
+                     budgets_name="tiny" if args.tiny else "full")
+    return {"report": str(Path(args.out) / "report.md"), "seconds": round(rep["seconds"], 1),
+            "recommendations": rep["recommendations"], "headline": rep["headline"],
+            "failed_sections": [k for k, v in rep["sections"].items() if "error" in v]}
+
+
 def cmd_demo(args, cfg) -> dict:
     from .io.captures import read_scene
     from .synth.generator import default_objects_dir, generate_scene
@@ -64,10 +93,35 @@ def cmd_demo(args, cfg) -> dict:
     t0 = time.perf_counter()
     summary = generate_scene(out / "scene", s, default_objects_dir(), progress=not args.quiet)
     t1 = time.perf_counter()
-    sheet = write_contact_sheet(read_scene(out / "scene"), out / "contact_sheet.png", d.sheet_views)
+    scene = read_scene(out / "scene")
+    sheet = write_contact_sheet(scene, out / "contact_sheet.png", d.sheet_views)
     t2 = time.perf_counter()
-    return {"scene": summary, "contact_sheet": str(sheet),
-            "seconds": {"synth": round(t1 - t0, 3), "contact_sheet": round(t2 - t1, 3)}}
+    result = {"scene": summary, "contact_sheet": str(sheet),
+              "seconds": {"synth": round(t1 - t0, 3), "contact_sheet": round(t2 - t1, 3)}}
+    if d.ground and scene.queries:
+        from .grounding.build import build_grounder
+        from .map.store import save_map
+        from .viz.grounding import write_grounding_pngs
+
+        grounder, report = build_grounder(scene, cfg, d.supervision, d.field_seconds, progress=not args.quiet)
+        result["map"] = str(save_map(grounder.mapper, out / "scene.rgmap"))
+        q = scene.queries[0]
+        answers = {}
+        for kind, text in (("explicit", q.explicit), ("implicit", q.implicit[0] if q.implicit else q.explicit)):
+            res = grounder.ground(text, mode=kind)
+            a = res.to_json()
+            if res.success:
+                f = scene.test[0] if scene.test else scene.train[0]
+                W, H = f.intrinsics.width, f.intrinsics.height
+                amodal, visible = grounder.masks(res, f.intrinsics.K, f.cam_to_world, W, H)
+                a["pictures"] = write_grounding_pngs(grounder, res, f.intrinsics.K, f.cam_to_world, W, H, amodal,
+                                                     visible, out / f"answer_{kind}")
+            print(f"{kind}: {text!r} -> {res.target or '-'} ({'ok' if res.success else res.message})", file=sys.stderr)
+            answers[kind] = a
+        result["answers"] = answers
+        result["seconds"]["build"] = report.get("seconds_map", 0.0)
+        result["seconds"]["total"] = round(time.perf_counter() - t0, 3)
+    return result
 
 
 def cmd_map(args, cfg) -> dict:
@@ -218,6 +272,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ablation", action="store_true", help="relevancy only / + reasoning / + grouping table")
     common(p)
     p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("report", help="error against run time, savings, scaling, stability: DIR/report.md + PNGs")
+    p.add_argument("scene", help="ReasoningGD scene folder (objects.json and queries.json for grounding)")
+    p.add_argument("--out", required=True, help="output folder (report.md, report.json, plots/)")
+    p.add_argument("--tiny", action="store_true", help="seconds-long budgets (what the test suite runs)")
+    p.add_argument("--sections", help="comma-separated subset of mapping,grounding,latency,memory,savings,"
+                                      "scaling,stability,degraded (default: all)")
+    p.add_argument("--map-iters", type=_floats, help="iterations per keyframe of the mapping section, e.g. 5,15,30")
+    p.add_argument("--field-seconds", type=_floats, help="feature-training budgets, e.g. 10,20,40,80")
+    p.add_argument("--frames", type=_floats, help="frame counts of the scaling, e.g. 25,50,100,200")
+    p.add_argument("--sizes", help="image sizes of the scaling, e.g. 160x120,320x240,640x480")
+    common(p)
+    p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("demo", help="the main job on an embedded default scene")
     p.add_argument("--out", default="rg_demo", help="output folder (default: ./rg_demo)")

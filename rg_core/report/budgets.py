@@ -1,0 +1,58 @@
+"""What `rg report` runs: budgets per section (full run and a seconds-long `--tiny` one)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+SECTIONS = ("mapping", "grounding", "latency", "memory", "savings", "scaling", "stability", "degraded")
+
+STABILITY_K = "stab or extreme or huge or nan or degenerate or scales_from or opacity or depth_ranges or float32 or saturation or zero"
+
+
+@dataclass
+class Budgets:
+    """Every knob of a report run; `map_overrides` apply to MapConfig in every mapping run."""
+
+    map_iters: tuple = (5, 15, 30)
+    """iters_per_keyframe of the mapping section (include the default to mark it)."""
+    map_overrides: dict = field(default_factory=dict)
+    """MapConfig fields changed for every run of the report (tiny: fewer iterations)."""
+    field_seconds: tuple = (10.0, 20.0, 40.0, 80.0)
+    """Cumulative feature-training budgets of the grounding section (one field, evaluated at each)."""
+    implicit_per_object: int = 1
+    latency_sizes: tuple = (5000, 20000, 100000)
+    """Map sizes (Gaussians) for query latency; the scene's own map size is added."""
+    latency_queries: int = 7
+    """Explicit queries timed per map size (median reported)."""
+    savings_field_seconds: float = 20.0
+    """Field budget of the grounding-side savings and of the degraded inputs."""
+    cluster_all_max: int = 20000
+    """Larger maps compare 'cluster every Gaussian' on a random subset of this size (HDBSCAN is super-linear)."""
+    frames: tuple = (25, 50, 100, 200)
+    """Frame counts of the time/memory scaling (streaming, no final refinement)."""
+    sizes: tuple = ((160, 120), (320, 240), (640, 480))
+    """Image sizes of the scaling (mapped at full width)."""
+    size_views: int = 25
+    """Views per image-size scene."""
+    synth_objects: int = 7
+    stability_files: tuple = ("tests/test_render_stability.py", "tests/test_field.py", "tests/test_mapper.py")
+    stability_k: str = STABILITY_K
+    degraded: tuple = ("depth_noise_1cm", "depth_noise_5cm", "missing_depth_20", "pose_noise_1cm_1deg")
+    fresh_process: bool = True
+    """Each scaling point in its own process (true peak memory); tiny runs in-process (seconds)."""
+    threads: int = 1
+    """torch intra-op threads (1 is fastest on small shared CPUs)."""
+
+
+def full_budgets(**over) -> Budgets:
+    return Budgets(**over)
+
+
+def tiny_budgets(**over) -> Budgets:
+    """Seconds, not minutes: the test suite runs this so `rg report` keeps working."""
+    base = dict(map_iters=(2, 4), map_overrides={"iters_per_keyframe": 4, "final_iters": 10},
+                field_seconds=(0.5, 1.0), latency_sizes=(300, 1500), latency_queries=2, savings_field_seconds=0.5,
+                cluster_all_max=1000, frames=(3, 6), sizes=((64, 48), (128, 96)), size_views=3, synth_objects=2,
+                stability_files=("tests/test_render_stability.py",), stability_k="float32 or huge",
+                degraded=("depth_noise_1cm",), fresh_process=False)
+    base.update(over)
+    return Budgets(**base)

@@ -1,0 +1,38 @@
+"""PNG line plots (matplotlib, Agg): each curve marks the default budget with a ring and a label."""
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def line_plot(path: Path, panels: list[dict], title: str = "") -> str:
+    """panels: [{"x": label, "y": label, "series": [(name, xs, ys)], "mark": [(x, y, text)],
+    "logx": bool, "logy": bool}] side by side. Returns the path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 3.5), squeeze=False)
+    for ax, p in zip(axes[0], panels):
+        for name, xs, ys in p["series"]:
+            ax.plot(xs, ys, "o-", label=name, ms=4)
+        for x, y, text in p.get("mark", []):
+            ax.plot([x], [y], "o", ms=11, mfc="none", mec="red", mew=1.5)
+            ax.annotate(text, (x, y), textcoords="offset points", xytext=(6, 6), fontsize=7, color="red")
+        if p.get("logx"):
+            ax.set_xscale("log")
+        if p.get("logy"):
+            ax.set_yscale("log")
+        ax.set_xlabel(p["x"])
+        ax.set_ylabel(p["y"])
+        ax.grid(alpha=0.3)
+        if len(p["series"]) > 1:
+            ax.legend(fontsize=7)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return str(path)

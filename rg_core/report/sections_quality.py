@@ -1,0 +1,245 @@
+"""Report sections on quality against time: mapping, grounding, query latency, savings, degraded
+inputs. Each takes the Context and returns {"text", "tables", "plots", "data"}."""
+from __future__ import annotations
+
+import statistics
+import time
+
+from ..config import FieldConfig, MapConfig
+from .inputs import SeedEverywhereMapper, degrade, resized_map
+from .plots import line_plot
+from .scaling import growth_exponent
+
+
+def _table(title, columns, rows):
+    return {"title": title, "columns": list(columns), "rows": [list(r) for r in rows]}
+
+
+def mapping(ctx) -> dict:
+    """PSNR and depth error against mapping seconds, one run per iterations-per-keyframe budget."""
+    default = MapConfig().iters_per_keyframe
+    rows = []
+    for it in ctx.b.map_iters:
+        if it < 0:
+            raise ValueError(f"iters_per_keyframe must be >= 0, got {it}")
+        _, r = ctx.map_run(("iters", it), iters_per_keyframe=it)
+        rows.append({"iters": it, **r})
+    mark = [r for r in rows if r["iters"] == default] or [r for r in rows if r["iters"] == ctx.cfg.map.iters_per_keyframe]
+    lab = lambda r: f"default ({r['iters']} it/kf)"  # noqa: E731
+    png = line_plot(ctx.plots / "mapping_error_vs_time.png", [
+        {"x": "mapping seconds", "y": "test PSNR (dB)", "series": [("PSNR", [r["seconds"] for r in rows], [r["psnr"] for r in rows])],
+         "mark": [(r["seconds"], r["psnr"], lab(r)) for r in mark]},
+        {"x": "mapping seconds", "y": "median |depth error| (mm)",
+         "series": [("depth", [r["seconds"] for r in rows], [r["depth_err_mm"] for r in rows])],
+         "mark": [(r["seconds"], r["depth_err_mm"], lab(r)) for r in mark]}],
+        "Mapping: error against run time (iterations per keyframe)")
+    cols = ("it/kf", "seconds", "keyframes", "Gaussians", "PSNR dB", "PSNR valid-depth dB", "depth err mm", "coverage")
+    t = [(r["iters"], r["seconds"], r["keyframes"], r["gaussians"], r["psnr"], r["psnr_valid_depth"], r["depth_err_mm"],
+          r["coverage"]) for r in rows]
+    return {"text": [f"{len(ctx.scene.train)} training frames, {len(ctx.scene.test)} test views; final refinement "
+                     f"{ctx.cfg.map.final_iters} iterations; default {default} it/kf."],
+            "tables": [_table("Mapping budgets", cols, t)], "plots": [png], "data": rows}
+
+
+def _ground_row(secs, steps, ev):
+    e, i = ev.get("explicit", {}), ev.get("implicit", {})
+    return {"field_seconds": round(secs, 2), "steps": steps, "explicit_visible": e.get("miou_visible", float("nan")),
+            "explicit_amodal": e.get("miou_amodal", float("nan")), "implicit_visible": i.get("miou_visible", float("nan")),
+            "implicit_amodal": i.get("miou_amodal", float("nan")), "localization": ev.get("all", {}).get("localization", float("nan")),
+            "query_s": ev.get("seconds", {}).get("per_query_median", float("nan"))}
+
+
+def grounding(ctx) -> dict:
+    """mIoU (visible/amodal, explicit/implicit) against feature-training seconds: one field with
+    oracle supervision, evaluated after each cumulative budget."""
+    budgets = sorted(ctx.b.field_seconds)
+    if not budgets or budgets[0] <= 0:
+        raise ValueError(f"field budgets must be positive seconds, got {ctx.b.field_seconds}")
+    mapper, _ = ctx.base()
+    g, _ = ctx.grounder(mapper, 0.0)
+    rows, done = [], 0.0
+    for b in budgets:
+        ctx.log(f"grounding: field to {b:g} s")
+        done += g.field.train(seconds=b - done, progress=ctx.progress)["seconds"]
+        rows.append(_ground_row(done, g.field.steps, ctx.evaluate(g)))
+        rows[-1]["budget"] = b
+    ctx.cache["grounder_main"] = g
+    default = FieldConfig().seconds
+    series = [(f"{k} {v}", [r["field_seconds"] for r in rows], [r[f"{k}_{v}"] for r in rows])
+              for k in ("explicit", "implicit") for v in ("visible", "amodal")]
+    mark = [(r["field_seconds"], r["explicit_amodal"], f"default ({default:g} s)") for r in rows if r["budget"] == default]
+    png = line_plot(ctx.plots / "grounding_miou_vs_field_seconds.png", [
+        {"x": "feature-training seconds", "y": "mIoU (%)", "series": series, "mark": mark}],
+        "Grounding (oracle 2D supervision): mIoU against feature-training time")
+    cols = ("budget s", "trained s", "steps", "explicit visible", "explicit amodal", "implicit visible", "implicit amodal",
+            "localization %", "query s (median)")
+    t = [(r["budget"], r["field_seconds"], r["steps"], r["explicit_visible"], r["explicit_amodal"], r["implicit_visible"],
+          r["implicit_amodal"], r["localization"], r["query_s"]) for r in rows]
+    return {"text": [f"Map at the default budget ({len(mapper.gaussians)} Gaussians); oracle supervision (ground-truth "
+                     f"visible masks, MiniLM name embeddings) measures the 3D part; default field budget {default:g} s."],
+            "tables": [_table("mIoU (%) against feature-training time", cols, t)], "plots": [png], "data": rows}
+
+
+def _latency(ctx, g, queries) -> dict:
+    from ..grounding.pipeline import Grounder
+
+    times, clusters, ok = [], [], 0
+    for q in queries:
+        t = time.perf_counter()
+        r = g.ground(q, mode="explicit")
+        times.append(time.perf_counter() - t)
+        clusters.append(r.timings.get("cluster", 0.0))
+        ok += int(r.success)
+    assert isinstance(g, Grounder)
+    return {"median_s": statistics.median(times), "max_s": max(times), "cluster_median_s": statistics.median(clusters),
+            "success": ok / len(queries)}
+
+
+def latency(ctx) -> dict:
+    """Median Grounder.ground latency against map size (subsets, or jittered copies up to 100k)."""
+    from ..grounding.pipeline import Grounder
+
+    if any(n < 1 for n in ctx.b.latency_sizes):
+        raise ValueError(f"map sizes must be >= 1 Gaussian, got {ctx.b.latency_sizes}")
+    g0 = ctx.trained()
+    N = len(g0.mapper.gaussians)
+    queries = [q.explicit for q in ctx.scene.queries][: max(1, ctx.b.latency_queries)]
+    g0.ground(queries[0], mode="explicit")  # warm-up: text model, vocabulary
+    rows = []
+    for n in sorted(set(ctx.b.latency_sizes) | {N}):
+        m, f = (g0.mapper, g0.field) if n == N else resized_map(g0.mapper, g0.field, n)
+        g = Grounder(m, f, ctx.cfg, reasoner=g0.reasoner, text_encoder=g0._text, scene_names=g0.scene_names)
+        rows.append({"gaussians": n, "default_map": n == N, **_latency(ctx, g, queries)})
+        ctx.log(f"latency {n} Gaussians: {rows[-1]}")
+    k = growth_exponent([r["gaussians"] for r in rows], [r["median_s"] for r in rows])
+    mark = [(r["gaussians"], r["median_s"], "default map") for r in rows if r["default_map"]]
+    png = line_plot(ctx.plots / "latency_vs_map_size.png", [
+        {"x": "Gaussians in the map", "y": "seconds per query", "logx": True, "logy": True, "mark": mark,
+         "series": [("median", [r["gaussians"] for r in rows], [r["median_s"] for r in rows]),
+                    ("max", [r["gaussians"] for r in rows], [r["max_s"] for r in rows]),
+                    ("clustering (median)", [r["gaussians"] for r in rows], [max(r["cluster_median_s"], 1e-4) for r in rows])]}],
+        "Query latency against map size")
+    cols = ("Gaussians", "median s", "max s", "clustering median s", "success", "map")
+    t = [(r["gaussians"], r["median_s"], r["max_s"], r["cluster_median_s"], r["success"],
+          "default" if r["default_map"] else ("subset" if r["gaussians"] < N else "jittered copies")) for r in rows]
+    return {"text": [f"{len(queries)} explicit queries per size, each on a fresh Grounder (clusters not cached across sizes); "
+                     f"max_cluster_points {ctx.cfg.ground.max_cluster_points}. Growth exponent of the median: {k:.2f}."],
+            "tables": [_table("Query latency", cols, t)], "plots": [png], "data": {"rows": rows, "exponent": k}}
+
+
+class _ForceMode:
+    """A Grounder whose ground() always uses one reasoning mode (turning the explicit shortcut off)."""
+
+    def __init__(self, g, mode):
+        self._g, self._mode = g, mode
+
+    def ground(self, query, mode="auto", **kw):
+        return self._g.ground(query, mode=self._mode, **kw)
+
+    def __getattr__(self, name):
+        return getattr(self._g, name)
+
+
+def _saving_row(name, off_by, on, off, t_key, metrics):
+    saved = off[t_key] - on[t_key]
+    row = {"saving": name, "turned off by": off_by, "seconds on": on[t_key], "seconds off": off[t_key],
+           "time saved s": saved, "time saved %": 100 * saved / off[t_key] if off[t_key] else float("nan")}
+    for m in metrics:
+        row[f"{m} on"], row[f"{m} off"], row[f"{m} change"] = on[m], off[m], on[m] - off[m]
+    return row
+
+
+def savings(ctx) -> dict:
+    """Each saving of the pipeline against turning it off, same scene, same run."""
+    _, base = ctx.base()
+    mrows = []
+    for name, off_by, kw in (
+            ("keyframe skipping", "kf_new_fraction=-1 (every frame a keyframe)", dict(kf_new_fraction=-1.0)),
+            ("seed only unexplained pixels", "SeedEverywhereMapper (seed every valid-depth block)", dict(mapper_cls=SeedEverywhereMapper)),
+            ("pruning", "prune_opacity=0, prune_scale=1e9", dict(prune_opacity=0.0, prune_scale=1e9))):
+        _, off = ctx.map_run(("off", name), **kw)
+        mrows.append(_saving_row(name, off_by, base, off, "seconds", ("psnr", "depth_err_mm", "gaussians")))
+    grows = []
+    g, ev_on = ctx.field_baseline()
+    on = _ground_row(0, 0, ev_on)
+    on["s"] = ev_on["seconds"]["per_query_median"]
+    from ..grounding.pipeline import Grounder
+
+    N = len(g.mapper.gaussians)
+    gs, where = g, f"{N}"
+    if N > ctx.b.cluster_all_max:  # HDBSCAN on everything is super-linear: compare on a subset map
+        m, f = resized_map(g.mapper, g.field, ctx.b.cluster_all_max)
+        gs = Grounder(m, f, ctx.cfg, reasoner=g.reasoner, text_encoder=g._text, scene_names=g.scene_names)
+        where = f"{ctx.b.cluster_all_max} (random subset of the {N}-Gaussian map)"
+    ga = Grounder(gs.mapper, gs.field, _with_ground(ctx.cfg, max_cluster_points=0), reasoner=g.reasoner,
+                  text_encoder=g._text, scene_names=g.scene_names)
+    ev, ev_e = ctx.evaluate(ga, implicit=0), ctx.evaluate(gs, implicit=0)
+    a, b = _ground_row(0, 0, ev_e), _ground_row(0, 0, ev)
+    a["s"], b["s"] = ev_e["seconds"]["per_query_median"], ev["seconds"]["per_query_median"]
+    grows.append(_saving_row(f"cluster at most {ctx.cfg.ground.max_cluster_points} Gaussians (map of {where})", "max_cluster_points=0",
+                             a, b, "s", ("explicit_visible", "explicit_amodal")))
+    ev_i = ctx.evaluate(_ForceMode(g, "implicit"), implicit=0)
+    ev_x = ctx.evaluate(_ForceMode(g, "explicit"), implicit=0)
+    a, b = _ground_row(0, 0, ev_x), _ground_row(0, 0, ev_i)
+    a["s"] = ev_x["seconds"]["stages_median"].get("reason", float("nan"))
+    b["s"] = ev_i["seconds"]["stages_median"].get("reason", float("nan"))
+    grows.append(_saving_row("skip the reasoning model for explicit queries", "mode=implicit for explicit queries",
+                             a, b, "s", ("explicit_visible", "explicit_amodal")))
+    # Field renders at most train_width wide: steps per second against the map's working width.
+    full_w = max(kf.size[0] for kf in g.mapper.keyframes)
+    if full_w > ctx.cfg.field.train_width:
+        cfg_w = _with_field(ctx.cfg, train_width=full_w)
+        gw, rep = ctx.grounder(g.mapper, ctx.b.savings_field_seconds, cfg_w)
+        ev_w = ctx.evaluate(gw)
+        rep_on = ctx.cache["field_baseline"][2]
+        a, b = _ground_row(0, 0, ev_on), _ground_row(0, 0, ev_w)
+        a["s"] = rep_on["seconds"] / max(rep_on["steps"], 1)
+        b["s"] = rep["field"]["seconds"] / max(rep["field"]["steps"], 1)
+        grows.append(_saving_row(f"train the field at {ctx.cfg.field.train_width} px", f"train_width={full_w}",
+                                 a, b, "s", ("explicit_visible", "explicit_amodal", "implicit_visible")))
+    mcols = ("saving", "turned off by", "seconds on", "seconds off", "time saved s", "time saved %", "psnr change",
+             "depth_err_mm change", "gaussians on", "gaussians off")
+    gcols = ("saving", "turned off by", "seconds on", "seconds off", "time saved s", "time saved %",
+             "explicit_visible change", "explicit_amodal change")
+    return {"text": [f"Mapping savings: total mapping seconds against the default map ({base['seconds']:.1f} s); "
+                     "error change = on - off (PSNR dB, depth mm: negative depth change = saving is more accurate).",
+                     "Grounding savings: seconds per query (clustering), reasoning seconds per query (reasoner), or "
+                     f"seconds per field step (train width); field trained {ctx.b.savings_field_seconds:g} s; mIoU in %."],
+            "tables": [_table("Mapping savings", mcols, [[r.get(c, "") for c in mcols] for r in mrows]),
+                       _table("Grounding savings", gcols, [[r.get(c, "") for c in gcols] for r in grows])],
+            "plots": [], "data": {"mapping": mrows, "grounding": grows}}
+
+
+def _with_ground(cfg, **over):
+    import dataclasses
+
+    return dataclasses.replace(cfg, ground=dataclasses.replace(cfg.ground, **over))
+
+
+def _with_field(cfg, **over):
+    import dataclasses
+
+    return dataclasses.replace(cfg, field=dataclasses.replace(cfg.field, **over))
+
+
+def degraded(ctx) -> dict:
+    """Depth noise, missing depth and pose noise on the training frames: error change against clean."""
+    _, base = ctx.base()
+    _, ev0 = ctx.field_baseline()
+    clean = {**base, **_ground_row(0, 0, ev0)}
+    rows = [{"case": "clean", **clean}]
+    for kind in ctx.b.degraded:
+        m, r = ctx.map_run(("degraded", kind), frames=degrade(ctx.scene.train, kind))
+        g, _ = ctx.grounder(m, ctx.b.savings_field_seconds)
+        rows.append({"case": kind, **r, **_ground_row(0, 0, ctx.evaluate(g))})
+    keys = ("psnr", "depth_err_mm", "explicit_visible", "explicit_amodal", "implicit_amodal")
+    for r in rows:
+        for k in keys:
+            r[f"d_{k}"] = r[k] - clean[k]
+    cols = ("case", "seconds", "gaussians", "psnr", "d_psnr", "depth_err_mm", "d_depth_err_mm", "explicit_visible",
+            "d_explicit_visible", "explicit_amodal", "d_explicit_amodal", "implicit_amodal", "d_implicit_amodal")
+    return {"text": ["Training frames degraded (seeded), test views clean; grounding with oracle masks on the clean "
+                     f"frames and a field trained {ctx.b.savings_field_seconds:g} s. d_ = change against clean."],
+            "tables": [_table("Degraded inputs", cols, [[r[c] for c in cols] for r in rows])], "plots": [], "data": rows}
+
+
