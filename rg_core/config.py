@@ -66,6 +66,12 @@ class DemoConfig:
     seed: int = 0
     sheet_views: int = 4
     """How many views the contact sheet shows."""
+    ground: bool = True
+    """Also map the scene, supervise it, train the field and answer one explicit and one implicit query."""
+    supervision: str = "default"
+    """2D supervision of the demo map: "default" (offline masks + ConSE) or "oracle" (ground truth)."""
+    field_seconds: float = 30.0
+    """Feature-training budget of the demo (s)."""
 
 
 @dataclass
