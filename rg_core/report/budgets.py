@@ -49,7 +49,7 @@ def full_budgets(**over) -> Budgets:
 
 def tiny_budgets(**over) -> Budgets:
     """Seconds, not minutes: the test suite runs this so `rg report` keeps working."""
-    base = dict(map_iters=(2, 4), map_overrides={"iters_per_keyframe": 4, "final_iters": 10},
+    base = dict(map_iters=(2, 4), map_overrides={"iters_per_keyframe": 4, "final_iters": 10, "width": 80},
                 field_seconds=(0.5, 1.0), latency_sizes=(300, 1500), latency_queries=2, savings_field_seconds=0.5,
                 cluster_all_max=1000, frames=(3, 6), sizes=((64, 48), (128, 96)), size_views=3, synth_objects=2,
                 stability_files=("tests/test_render_stability.py",), stability_k="float32 or huge",

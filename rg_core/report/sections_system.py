@@ -83,6 +83,8 @@ def scaling(ctx) -> dict:
     cols = ("size", "frames", "seconds", "keyframes", "Gaussians", "peak RSS MB", "RSS after imports MB")
     t = [(f"{r['width']}x{r['height']}", r["frames"], r["seconds"], r["keyframes"], r["gaussians"], r["peak_rss_mb"],
           r["rss_before_mb"]) for r in sz]
+    if not ctx.b.fresh_process:  # one process: its peak memory only ever grows, no per-point figure
+        ex.update(memory_vs_frames="n/a (in-process run)", memory_vs_pixels="n/a (in-process run)")
     et = [(k.replace("_", " "), v) for k, v in ex.items()]
     return {"text": ["Image-size scenes are mapped at full width (map.width = image width); frame counts at "
                      "min(map.width, image width). Each point is a fresh process, no final refinement."],
