@@ -77,7 +77,7 @@ def wait_for(cond, timeout: float, what: str):
         if v:
             return v
         time.sleep(0.1)
-    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what() if callable(what) else what}")
 
 
 class Harness:
@@ -255,14 +255,15 @@ def test_flood_is_dropped_and_bounded(h):
     assert h.node_a.poll() is None
 
 
-@pytest.mark.xfail(strict=False, reason="grounding pipeline not landed")
+
 def test_ground_publishes_masks_cloud_and_markers(h):
     res = h.call(h.ground, Ground.Request(query="orange"))
     if "grounding not available" in res.message:
         assert not res.success
         pytest.xfail(res.message)
     # features: supervision and a few seconds of field training when idle
-    wait_for(lambda: h.st().get("field_steps", 0) > 0 and h.st().get("queue") == 0, 90, "field training")
+    wait_for(lambda: h.st().get("field_steps", 0) > 0 and h.st().get("queue") == 0, 240,
+             lambda: f"field training (status {h.st()})")
     res = h.call(h.ground, Ground.Request(query="orange", max_results=1), timeout=120)
     assert res.success, res.message
     assert len(res.objects) >= 1 and res.cloud.width > 0
@@ -272,9 +273,31 @@ def test_ground_publishes_masks_cloud_and_markers(h):
         assert m.encoding == "mono8" and (m.width, m.height) == (160, 120) and m.header.frame_id == OPTICAL
         assert set(np.unique(cv.image_to_mask(m))) <= {0, 255}
     assert cv.image_to_mask(h.msgs["amodal"][-1]).any()
+    from visualization_msgs.msg import Marker
+
     kinds = {mk.type for mk in h.msgs["markers"][-1].markers}
-    assert {3, 5, 9} <= kinds   # CUBE, LINE_LIST, TEXT_VIEW_FACING
+    assert {Marker.CUBE, Marker.LINE_LIST, Marker.TEXT_VIEW_FACING} <= kinds
     assert h.msgs["grounded"][-1].header.frame_id == "map" and h.msgs["grounded"][-1].width == res.cloud.width
+
+
+@pytest.mark.xfail(strict=False, reason="offline ConSE supervision does not recognise the rendered orange "
+                   "(ImageNet top classes: isopod, pot pie, gong); measured 3% of the cloud inside its box, "
+                   "target 80%. Passes with oracle supervision (rg eval --supervision oracle)")
+def test_grounded_cloud_lies_in_the_targets_box(h):
+    """The answer is the right object: the cloud's points lie in its ground-truth box (1 cm margin),
+    for the explicit query and for an implicit one."""
+    from rg_core.io.captures import read_scene
+    from rg_ros.pointcloud import from_pointcloud2
+
+    box = {o.name: o for o in read_scene(h.scene).objects}["orange"]
+    res = h.call(h.ground, Ground.Request(query="orange"), timeout=120)
+    implicit = h.call(h.ground, Ground.Request(query="a round citrus fruit with a thick peel"), timeout=120)
+    for r in (res, implicit):
+        assert r.success, r.message
+        pts, _ = from_pointcloud2(r.cloud)
+        inside = np.all((pts >= np.array(box.aabb_min) - 0.01) & (pts <= np.array(box.aabb_max) + 0.01), 1)
+        print(f"{r.target}: {inside.mean():.2f} of {len(pts)} points inside the orange's box")
+        assert inside.mean() >= 0.8, (r.target, r.explanation, inside.mean())
 
 
 def test_save_map_writes_a_loadable_map(h):

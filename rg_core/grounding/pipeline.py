@@ -18,7 +18,7 @@ from .boxes import group_boxes, robust_inliers
 from .grouping import Groups, cluster_instances
 from .relevancy import CANONICAL, relevancy
 from .result import GroundedObject, GroundingResult
-from .vocabulary import build_vocabulary
+from .vocabulary import build_vocabulary, looks_like_name
 
 log = logging.getLogger(__name__)
 
@@ -142,6 +142,8 @@ class Grounder:
             return GroundingResult(False, not_ready, query=query)
 
         vocab = self.vocabulary()
+        if mode != "implicit" and looks_like_name(query) and query.strip() not in vocab:
+            vocab.append(query.strip())
         r = self.reasoner.reason(query, vocab, image=None, mode=mode)
         t["reason"] = time.perf_counter() - t0
         res = GroundingResult(False, "", query=query, target=r.target, explanation=r.explanation)

@@ -40,3 +40,16 @@ def build_vocabulary(scene_names, extra, mask_embeddings, text_encoder, use_supp
             if n not in out:
                 out.append(n)
     return out
+
+
+_NOT_A_NAME = {"something", "thing", "things", "anything", "for", "to", "with", "that", "which", "what", "where",
+               "used", "use", "can", "could", "i", "me", "my", "you", "want", "need", "would", "should", "from",
+               "of", "in", "on", "is", "are", "hold", "holds", "make", "made"}
+
+
+def looks_like_name(query: str) -> bool:
+    """A short noun phrase ("orange", "the red mug") rather than a description: such a query is
+    offered to the reasoner as a candidate name of its own, so an explicit query for an object the
+    vocabulary lacks still passes straight through (the map then says whether anything matches)."""
+    words = [w for w in query.lower().replace(",", " ").split() if w not in ("a", "an", "the", "some")]
+    return 0 < len(words) <= 3 and not any(w in _NOT_A_NAME for w in words)
