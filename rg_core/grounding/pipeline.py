@@ -114,15 +114,47 @@ class Grounder:
         s, _, kf, i, scale = max((c for c in cands if c[0] >= top - 0.02), key=lambda c: c[1])
         return kf, i, s, scale
 
-    def groups(self, scale: float) -> Groups:
-        """Clusters of instance features at one scale (cached until the map or field changes)."""
-        key = (round(scale, 4), len(self.mapper.gaussians), self.field.steps)
+    def groups(self, scale: float, region: np.ndarray | None = None) -> Groups:
+        """Clusters of instance features at one scale, over the Gaussians in `region` (bool [N];
+        None: all); cached until the map, the field or the region changes. Gaussians outside the
+        region are left out: label -1 and a zero feature, so they never join a group."""
+        N = len(self.mapper.gaussians)
+        rkey = None if region is None else hash(np.packbits(region).tobytes())
+        key = (round(scale, 4), N, self.field.steps, rkey)
         if key not in self._groups:
             g = self.gcfg
-            feats = self.field.gaussian_instance(scale)
-            self._groups = {key: cluster_instances(feats, g.max_cluster_points, g.min_cluster_size, g.cluster_eps,
-                                                   seed=g.seed, method=g.cluster_method)}
+            feats = self.field.gaussian_instance(scale)                         # [N, Di]
+            if region is None:
+                out = cluster_instances(feats, g.max_cluster_points, g.min_cluster_size, g.cluster_eps,
+                                        seed=g.seed, method=g.cluster_method)
+            else:
+                idx = np.nonzero(region)[0]
+                sub = cluster_instances(feats[torch.from_numpy(idx)], g.max_cluster_points, g.min_cluster_size,
+                                        g.cluster_eps, seed=g.seed, method=g.cluster_method)
+                labels = np.full(N, -1, np.int64)
+                labels[idx] = sub.labels
+                full = torch.zeros_like(feats)
+                full[torch.from_numpy(idx)] = sub.features
+                out = Groups(labels, sub.centres, sub.clustered, sub.seconds, sub.radius, full)
+            self._groups = {key: out}
         return self._groups[key]
+
+    def region(self, kf, mask: np.ndarray, depth: torch.Tensor, alpha: torch.Tensor, scale: float) -> np.ndarray | None:
+        """Gaussians that can belong to the reference mask's object: within `region_scales` x s* of
+        the 3D centroid of the mask (back-projected with the rendered depth). None: no depth there."""
+        if self.gcfg.region_scales <= 0 or mask.shape != tuple(depth.shape):
+            return None
+        sel = torch.from_numpy(mask) & (alpha > self.gcfg.mask_alpha) & (depth > 0)
+        if int(sel.sum()) < 3:
+            return None
+        vs, us = torch.nonzero(sel, as_tuple=True)
+        z = depth[vs, us].double()
+        K = torch.as_tensor(kf.K, dtype=torch.float64)
+        pc = torch.stack([(us.double() - K[0, 2]) * z / K[0, 0], (vs.double() - K[1, 2]) * z / K[1, 1], z], 1)
+        c2w = torch.as_tensor(kf.cam_to_world, dtype=torch.float64)
+        centre = (pc @ c2w[:3, :3].T + c2w[:3, 3]).median(0).values.float()
+        d = (self.mapper.gaussians.means.detach() - centre).norm(dim=-1)
+        return (d <= self.gcfg.region_scales * max(scale, 1e-3)).numpy()
 
     def _decompress(self, z: torch.Tensor) -> torch.Tensor:  # [..., k] -> [..., D]
         return self.mapper.supervision.pca.pca.inverse(z)
@@ -179,7 +211,9 @@ class Grounder:
         t["relevancy"] = time.perf_counter() - t2
 
         t3 = time.perf_counter()
-        groups = self.groups(scale)
+        # Leave out what the query does not need: one object is sought near the reference mask.
+        region = self.region(kf, ref_mask.numpy(), fr.depth, fr.alpha, scale) if max_results == 1 else None
+        groups = self.groups(scale, region)
         t["cluster"] = time.perf_counter() - t3
         t4 = time.perf_counter()
         sim = groups.centres @ q_inst                                          # [G]
