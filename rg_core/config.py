@@ -59,17 +59,18 @@ class SynthConfig:
 class DemoConfig:
     """The main job (`rg demo`) on an embedded default scene."""
 
-    views: int = 16
-    width: int = 160
-    height: int = 120
+    views: int = 24
+    width: int = 320
+    height: int = 240
     objects: int = 5
     seed: int = 0
     sheet_views: int = 4
     """How many views the contact sheet shows."""
     ground: bool = True
     """Also map the scene, supervise it, train the field and answer one explicit and one implicit query."""
-    supervision: str = "default"
-    """2D supervision of the demo map: "default" (offline masks + ConSE) or "oracle" (ground truth)."""
+    supervision: str = "oracle"
+    """2D supervision of the demo map: "oracle" (ground-truth masks and names: shows the 3D pipeline
+    itself) or "default" (the offline mask generator and ConSE, whose names are often wrong)."""
     field_seconds: float = 30.0
     """Feature-training budget of the demo (s)."""
 

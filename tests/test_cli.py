@@ -25,7 +25,8 @@ def test_demo_writes_contact_sheet(tmp_path):
 
     # Small budgets: the test checks that the whole main job runs and reports, not its accuracy.
     cfg = tmp_path / "demo.yaml"
-    cfg.write_text("demo:\n  field_seconds: 3.0\n  supervision: oracle\nmap:\n  iters_per_keyframe: 3\n  final_iters: 0\n")
+    cfg.write_text("demo:\n  views: 16\n  width: 160\n  height: 120\n  field_seconds: 3.0\n  supervision: oracle\n"
+                   "map:\n  iters_per_keyframe: 3\n  final_iters: 0\n")
     r = run_rg("--config", str(cfg), "demo", "--out", str(tmp_path / "demo"), "--json")
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)

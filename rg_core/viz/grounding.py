@@ -24,7 +24,10 @@ def write_grounding_pngs(grounder, result, K, c2w, width: int, height: int, amod
     fig, ax = plt.subplots(1, 4, figsize=(16, 3.6))
     ax[0].imshow(rgb)
     ax[0].set_title("render")
-    im = ax[1].imshow(rel.numpy(), cmap="turbo", vmin=0.0, vmax=1.0)
+    r = rel.numpy()
+    cov = r[fr.alpha.numpy() > 0.5]
+    lo, hi = (np.percentile(cov, [1, 99.5]) if cov.size else (0.0, 1.0))
+    im = ax[1].imshow(r, cmap="turbo", vmin=float(lo), vmax=float(max(hi, lo + 1e-3)))  # stretched: values sit near 0.5
     ax[1].set_title(f"relevancy: {result.target}")
     fig.colorbar(im, ax=ax[1], fraction=0.046)
     for a, m, name, col in ((ax[2], amodal, "amodal", (1.0, 0.2, 0.2)), (ax[3], visible, "visible", (0.2, 1.0, 0.2))):
