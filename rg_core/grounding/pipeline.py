@@ -232,10 +232,17 @@ class Grounder:
         if home < 0:
             # The most relevant pixel's feature lies in no cluster: HDBSCAN left that object as noise.
             # Its group is then the Gaussians around that feature (as tight as a typical cluster).
+            # Too few there (a weakly trained field): the nearest cluster, or with no cluster at all
+            # the 2 x min_cluster_size Gaussians nearest that feature.
             ball = groups.ball(q_inst)
-            if len(ball) >= self.gcfg.min_cluster_size:
+            mcs = self.gcfg.min_cluster_size
+            if len(ball) >= mcs:
                 found.append((ball, float(sim.max()) if len(sim) else 1.0))
-            chosen = chosen[1:] if max_results > 1 else []
+                chosen = chosen[1:] if max_results > 1 else []
+            elif not chosen and groups.features is not None and len(groups.features):
+                d = groups.features @ torch.nn.functional.normalize(q_inst.float(), dim=-1)
+                near = torch.topk(d, min(2 * mcs, len(d))).indices.numpy()
+                found.append((np.sort(near), float(d[near].mean())))
         found += [(groups.members(gi, grow=self.gcfg.grow_groups), float(max(sim[gi], 0.0))) for gi in chosen]
         for ids, s_g in found[:max_results]:
             ids = ids[robust_inliers(means[ids], self.gcfg.outlier_mads)]
@@ -249,7 +256,8 @@ class Grounder:
         t["total"] = time.perf_counter() - t0
         res.timings = t
         if not res.objects:
-            res.message = "the selected group was empty after outlier removal"
+            res.message = (f"no Gaussian group for {r.target!r} at scale {scale:.3f} m: HDBSCAN found "
+                           f"{len(groups.centres)} groups and none held the most relevant pixel's feature")
             return res
         res.success = True
         res.confidence = res.objects[0].confidence
