@@ -88,3 +88,16 @@ def test_cluster_instances_survives_nan_features():
     x[0] = float("nan")
     out = cluster_instances(x, max_points=0)
     assert out.labels.shape == (90,) and torch.isfinite(out.centres).all()
+
+
+def test_vocabulary_keeps_scene_names_and_drops_near_synonyms():
+    from rg_core.grounding.vocabulary import build_vocabulary, looks_like_name
+
+    base = {"phillips screwdriver": [1.0, 0.0, 0.0], "screwdriver": [0.95, 0.31, 0.0], "banana": [0.0, 0.0, 1.0],
+            "apple": [0.0, 1.0, 0.0]}
+    enc = lambda names: torch.tensor([base.get(n, [0.3, 0.3, 0.3]) for n in names])
+    masks = enc(["screwdriver", "banana"])  # masks whose nearest household names are these two
+    v = build_vocabulary(["phillips screwdriver"], ["apple"], masks, enc)
+    assert v[:2] == ["phillips screwdriver", "apple"] and "banana" in v and "screwdriver" not in v
+    assert looks_like_name("the red mug") and looks_like_name("orange")
+    assert not looks_like_name("something to drink hot tea from") and not looks_like_name("")
