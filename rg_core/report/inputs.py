@@ -98,6 +98,6 @@ def resized_map(mapper: Mapper, field, n: int, seed: int = 0):
     return m, FeatureField.from_state_dict(m, d)
 
 
-def with_map(cfg, **over):
-    """RGConfig copy with MapConfig fields replaced."""
-    return dataclasses.replace(cfg, map=dataclasses.replace(cfg.map, **over))
+def with_section(cfg, section: str, **over):
+    """RGConfig copy with fields of one section (map, field, ground, ...) replaced."""
+    return dataclasses.replace(cfg, **{section: dataclasses.replace(getattr(cfg, section), **over)})

@@ -6,7 +6,7 @@ import statistics
 import time
 
 from ..config import FieldConfig, MapConfig
-from .inputs import SeedEverywhereMapper, degrade, resized_map
+from .inputs import SeedEverywhereMapper, degrade, resized_map, with_section
 from .plots import line_plot
 from .scaling import growth_exponent
 
@@ -171,7 +171,7 @@ def savings(ctx) -> dict:
         m, f = resized_map(g.mapper, g.field, ctx.b.cluster_all_max)
         gs = Grounder(m, f, ctx.cfg, reasoner=g.reasoner, text_encoder=g._text, scene_names=g.scene_names)
         where = f"{ctx.b.cluster_all_max} (random subset of the {N}-Gaussian map)"
-    ga = Grounder(gs.mapper, gs.field, _with_ground(ctx.cfg, max_cluster_points=0), reasoner=g.reasoner,
+    ga = Grounder(gs.mapper, gs.field, with_section(ctx.cfg, "ground", max_cluster_points=0), reasoner=g.reasoner,
                   text_encoder=g._text, scene_names=g.scene_names)
     ev, ev_e = ctx.evaluate(ga, implicit=0), ctx.evaluate(gs, implicit=0)
     a, b = _ground_row(0, 0, ev_e), _ground_row(0, 0, ev)
@@ -188,7 +188,7 @@ def savings(ctx) -> dict:
     # Field renders at most train_width wide: steps per second against the map's working width.
     full_w = max(kf.size[0] for kf in g.mapper.keyframes)
     if full_w > ctx.cfg.field.train_width:
-        cfg_w = _with_field(ctx.cfg, train_width=full_w)
+        cfg_w = with_section(ctx.cfg, "field", train_width=full_w)
         gw, rep = ctx.grounder(g.mapper, ctx.b.savings_field_seconds, cfg_w)
         ev_w = ctx.evaluate(gw)
         rep_on = ctx.cache["field_baseline"][2]
@@ -208,18 +208,6 @@ def savings(ctx) -> dict:
             "tables": [_table("Mapping savings", mcols, [[r.get(c, "") for c in mcols] for r in mrows]),
                        _table("Grounding savings", gcols, [[r.get(c, "") for c in gcols] for r in grows])],
             "plots": [], "data": {"mapping": mrows, "grounding": grows}}
-
-
-def _with_ground(cfg, **over):
-    import dataclasses
-
-    return dataclasses.replace(cfg, ground=dataclasses.replace(cfg.ground, **over))
-
-
-def _with_field(cfg, **over):
-    import dataclasses
-
-    return dataclasses.replace(cfg, field=dataclasses.replace(cfg.field, **over))
 
 
 def degraded(ctx) -> dict:
