@@ -25,9 +25,8 @@ def supervise(mapper: Mapper, scene, kind: str, text_encoder, progress: bool = F
     elif kind == "default":
         from ..perception.embed import make_embedder
         from ..perception.masks import make_mask_generator
-        from ..perception.supervision import supervise_map
-
         from ..perception.multiview import aggregate_multiview
+        from ..perception.supervision import supervise_map
 
         sset = supervise_map(mapper, make_mask_generator("rgbd"), make_embedder("conse"), progress=progress)
         stats = aggregate_multiview(mapper, sset)  # one embedding per object across keyframes

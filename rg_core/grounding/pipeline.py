@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from ..config import RGConfig
+from ..geometry.conventions import backproject
 from ..render import rasterize
 from .boxes import group_boxes, robust_inliers
 from .grouping import Groups, cluster_instances
@@ -147,12 +148,8 @@ class Grounder:
         sel = torch.from_numpy(mask) & (alpha > self.gcfg.mask_alpha) & (depth > 0)
         if int(sel.sum()) < 3:
             return None
-        vs, us = torch.nonzero(sel, as_tuple=True)
-        z = depth[vs, us].double()
-        K = torch.as_tensor(kf.K, dtype=torch.float64)
-        pc = torch.stack([(us.double() - K[0, 2]) * z / K[0, 0], (vs.double() - K[1, 2]) * z / K[1, 1], z], 1)
-        c2w = torch.as_tensor(kf.cam_to_world, dtype=torch.float64)
-        centre = (pc @ c2w[:3, :3].T + c2w[:3, 3]).median(0).values.float()
+        pts = backproject(depth.numpy(), np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64))
+        centre = torch.from_numpy(pts[sel.numpy()]).median(0).values.float()        # [3] world
         d = (self.mapper.gaussians.means.detach() - centre).norm(dim=-1)
         return (d <= self.gcfg.region_scales * max(scale, 1e-3)).numpy()
 

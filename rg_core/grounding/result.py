@@ -21,7 +21,7 @@ class GroundedObject:
     confidence: float = 0.0
 
     def to_json(self) -> dict:
-        return {"gaussians": int(len(self.gaussian_ids)), "confidence": float(self.confidence),
+        return {"gaussians": len(self.gaussian_ids), "confidence": float(self.confidence),
                 "aabb": [self.aabb_min.tolist(), self.aabb_max.tolist()],
                 "obb": {"center": self.obb_center.tolist(), "rotation": self.obb_rotation.tolist(),
                         "extent": self.obb_extent.tolist()}}
