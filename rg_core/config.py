@@ -100,6 +100,9 @@ class MapConfig:
     """A frame is a keyframe if more than this fraction of its valid depth is unexplained ..."""
     kf_photo_error: float = 0.09
     """... or if the map renders its explained pixels with a mean L1 colour error above this."""
+    seed_colour_error: float = 0.3
+    """After a keyframe's optimisation, seed at half the stride where the map still renders it with a
+    per-pixel L1 colour error above this (detail the map lacks: densification). 0 turns it off."""
     unexplained_alpha: float = 0.5
     """Pixels the map covers with less accumulated alpha are unexplained."""
     depth_error_abs: float = 0.03

@@ -142,3 +142,46 @@ def test_bad_map_files(tmp_path):
     torch.save({"format": "rg-map", "version": 99}, tmp_path / "new.rgmap")
     with pytest.raises(MapFileError, match="version 99"):
         load_map(tmp_path / "new.rgmap")
+
+
+def test_densify_seeds_only_where_the_colour_is_wrong(synth_scene):
+    """Gaussians that render a region in the wrong colour get half-stride seeds there, on the
+    surface (and nowhere else more than before); a threshold above any L1 error adds nothing."""
+    import copy
+
+    from rg_core.map.frames import prepare_frame
+
+    mapper = Mapper(MapConfig(width=160, iters_per_keyframe=10, seed_colour_error=0.0))
+    rgb, depth, K, c2w, stamp = frame_args(synth_scene.train[0])
+    mapper.add_frame(rgb, depth, K, c2w, stamp)
+    kf = mapper.keyframes[0]
+    fr = prepare_frame(rgb, depth, K, c2w, stamp, 160)
+    w, h = kf.size
+    R, t = torch.as_tensor(c2w[:3, :3]).float(), torch.as_tensor(c2w[:3, 3]).float()
+
+    def pixels(means):  # [N, 3] -> u, v, z in the keyframe
+        pc = (means - t) @ R
+        return kf.K[0, 0] * pc[:, 0] / pc[:, 2] + kf.K[0, 2], kf.K[1, 1] * pc[:, 1] / pc[:, 2] + kf.K[1, 2], pc[:, 2]
+
+    n0 = len(mapper.gaussians)
+    before = copy.deepcopy(mapper)
+    before.cfg.seed_colour_error = 0.3
+    base, _ = before._densify(fr, kf)                # what the map lacks anyway
+    with torch.no_grad():   # paint the Gaussians projecting into the left third in the opposite colour
+        u, _, _ = pixels(mapper.gaussians.means)
+        left = u < w / 3
+        mapper.gaussians.colors[left] = 1.0 - mapper.gaussians.colors[left]
+    mapper.cfg.seed_colour_error = 1.01            # L1 colour error never exceeds 1
+    assert mapper._densify(fr, kf) == (0, 0) and len(mapper.gaussians) == n0
+    mapper.cfg.seed_colour_error = 0.3
+    added, dropped = mapper._densify(fr, kf)
+    assert dropped == 0 and len(mapper.gaussians) == n0 + added
+    u, v, z = pixels(mapper.gaussians.means[n0:])
+    inside = u < w / 3 + 4
+    assert int(inside.sum()) > 200 and int((~inside).sum()) <= base, (int(inside.sum()), int((~inside).sum()), base)
+    # On the surface: the seeds project to pixels whose sensor depth is their own depth.
+    d = kf.depth[v.round().long().clamp(0, h - 1), u.round().long().clamp(0, w - 1)]
+    ok = d > 0
+    assert float(((z[ok] - d[ok]).abs() < 0.02).float().mean()) > 0.9
+    assert all(torch.isfinite(x).all() for x in mapper.gaussians.tensors().values())
+    assert mapper.optim.m["means"].shape[0] == len(mapper.gaussians)

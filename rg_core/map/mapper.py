@@ -110,7 +110,9 @@ class Mapper:
                 out = self.render(fr.K, fr.cam_to_world, w, h)
                 unexplained = self._unexplained(out, depth_t, valid)
                 explained = valid & ~unexplained
-                photo = float((out.channels - rgb_t).abs().mean(-1)[explained].mean()) if explained.any() else 1.0
+                colour_err = (out.channels - rgb_t).abs().mean(-1)  # [h, w]
+                photo = float(colour_err[explained].mean()) if explained.any() else 1.0
+                # Detail the map lacks: surfaces it has, in colours it cannot hold (densification).
             else:
                 unexplained, photo = valid.clone(), 1.0
         frac = float(unexplained.sum()) / max(int(valid.sum()), 1)
@@ -133,6 +135,9 @@ class Mapper:
         res.added, res.dropped = self._seed(fr, unexplained)
         t3 = time.perf_counter()
         self._optimise(self.cfg.iters_per_keyframe)
+        if self.cfg.seed_colour_error > 0:
+            a, d = self._densify(fr, kf)
+            res.added, res.dropped = res.added + a, res.dropped + d
         t4 = time.perf_counter()
         res.pruned = self._prune()
         t5 = time.perf_counter()
@@ -157,10 +162,12 @@ class Mapper:
         near_edge = (hi - lo)[0, 0] > tol
         return valid & ((out.alpha < c.unexplained_alpha) | ((err > tol) & ~near_edge))
 
-    def _seed(self, fr: PreparedFrame, unexplained: torch.Tensor) -> tuple[int, int]:
-        """Back-project unexplained depth pixels (one per stride x stride block) as new Gaussians."""
+    def _seed(self, fr: PreparedFrame, unexplained: torch.Tensor, depth: torch.Tensor | None = None,
+              stride: int | None = None) -> tuple[int, int]:
+        """Back-project unexplained depth pixels (one per stride x stride block) as new Gaussians;
+        `depth` [h, w] (default the frame's sensor depth) places them."""
         c = self.cfg
-        s = c.seed_stride
+        s = stride or c.seed_stride
         # Every stride x stride block holding an unexplained pixel gets one seed, at its unexplained
         # pixel closest to the block centre: thin regions (object rims) are never skipped.
         vs, us = torch.nonzero(unexplained, as_tuple=True)
@@ -182,7 +189,7 @@ class Mapper:
         if len(vs) == 0:
             return 0, n_cand
         K = torch.as_tensor(fr.K, dtype=torch.float64)
-        z = torch.from_numpy(fr.depth)[vs, us].double()
+        z = (torch.from_numpy(fr.depth) if depth is None else depth)[vs, us].double()
         pc = torch.stack([(us.double() - K[0, 2]) * z / K[0, 0], (vs.double() - K[1, 2]) * z / K[1, 1], z], 1)
         c2w = torch.as_tensor(fr.cam_to_world)
         pw = pc @ c2w[:3, :3].T + c2w[:3, 3]
@@ -192,6 +199,20 @@ class Mapper:
         self.gaussians.append(pw.float(), scale.float(), colors, c.init_opacity)
         self.optim.sync()
         return len(vs), n_cand - len(vs)
+
+    @torch.no_grad()
+    def _densify(self, fr: PreparedFrame, kf: Keyframe) -> tuple[int, int]:
+        """Detail the map still lacks after optimising a keyframe: where it renders the right surface
+        in the wrong colour (L1 above `seed_colour_error`), seed at half the stride, placed by the
+        sensor depth or, where the sensor has none, by the map's own rendered surface."""
+        w, h = kf.size
+        out = self.render(kf.K, kf.cam_to_world, w, h)
+        valid = kf.depth > 0
+        covered = out.alpha > 0.5
+        depth = torch.where(valid, kf.depth, out.depth / out.alpha.clamp(min=1e-6))
+        err = (out.channels + (1.0 - out.alpha)[..., None] * self.gaussians.background - kf.rgb).abs().mean(-1)
+        detail = (valid | covered) & (depth > 0) & (err > self.cfg.seed_colour_error)
+        return self._seed(fr, detail, depth, max(1, self.cfg.seed_stride // 2))
 
     def refine(self, iters: int) -> float:
         """Optimise over all keyframes uniformly (what a robot does when idle, and `rg map` at the
