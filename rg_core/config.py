@@ -215,6 +215,15 @@ class GroundConfig:
     blending weight above 0.5 where the full render's alpha is above this."""
     outlier_mads: float = 3.0
     """Group Gaussians farther than this many robust spreads from the group's median are dropped."""
+    carve_views: int = 32
+    """A group loses the Gaussians that keyframes see outside their mask of the target (up to this
+    many keyframes whose best mask is as similar to the target as the reference view's); 0: off."""
+    min_mask_votes: int = 2
+    """... and gains the Gaussians that at least this many of those keyframes see inside it (and no
+    more of them outside); joined in space to the rest like any member."""
+    link_spacing: float = 3.0
+    """A group keeps the Gaussians connected in space to the most relevant point by steps of at most
+    this many map spacings (median nearest-neighbour distance); 0 keeps the whole feature cluster."""
     max_query_chars: int = 1000
     """Longer queries are rejected."""
     seed: int = 0

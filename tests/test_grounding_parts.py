@@ -101,3 +101,58 @@ def test_vocabulary_keeps_scene_names_and_drops_near_synonyms():
     assert v[:2] == ["phillips screwdriver", "apple"] and "banana" in v and "screwdriver" not in v
     assert looks_like_name("the red mug") and looks_like_name("orange")
     assert not looks_like_name("something to drink hot tea from") and not looks_like_name("")
+
+
+def _camera_looking_down(x: float) -> np.ndarray:
+    """cam_to_world [4, 4] (OpenCV axes) 1 m above (x, 0, 0), looking straight down at z = 0."""
+    c2w = np.eye(4)
+    c2w[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    c2w[:3, 3] = [x, 0.0, 1.0]
+    return c2w
+
+
+def test_mask_votes_carve_what_views_see_elsewhere_and_keep_hidden_parts():
+    from rg_core.grounding.carve import MaskView, mask_votes
+
+    K = np.array([[100.0, 0, 32], [0, 100.0, 32], [0, 0, 1]])
+    depth = np.ones((64, 64))                    # a floor at z = 0, 1 m below every camera
+    mask = np.zeros((64, 64), bool)
+    views = []
+    for x in (-0.02, 0.0, 0.02):
+        c2w = _camera_looking_down(x)
+        u0 = int(32 + 100 * (0.0 - x))            # the target: a 0.1 m patch of floor around x = 0
+        m = mask.copy()
+        m[27:38, u0 - 5:u0 + 6] = True
+        views.append(MaskView(K, c2w, depth, m))
+    pts = np.array([[0.0, 0.0, 0.0],     # on the target: seen inside by all
+                    [0.2, 0.0, 0.0],     # on the floor elsewhere: seen outside by all
+                    [0.0, 0.0, -0.3],    # under the target, hidden, inside its silhouette: kept (amodal)
+                    [0.2, 0.0, -0.04],   # sunk 4 cm into the floor elsewhere: hidden, outside every silhouette
+                    [0.2, 0.0, -0.01],   # 1 cm into the floor: within the 2% depth tolerance, seen outside
+                    [5.0, 0.0, 0.0]])    # off every image: no evidence, kept
+    v = mask_votes(pts, views)
+    np.testing.assert_array_equal(v.inside, [3, 0, 0, 0, 0, 0])
+    np.testing.assert_array_equal(v.outside, [0, 3, 0, 0, 3, 0])
+    np.testing.assert_array_equal(v.carved(2), [False, True, False, True, True, False])
+    np.testing.assert_array_equal(v.voted(2), [True, False, False, False, False, False])
+    # A Gaussian as large as its depth gap reaches the surface: seen.
+    big = mask_votes(pts[3:4], views, sizes=np.array([0.025]))
+    assert big.outside[0] == 3
+    with pytest.raises(ValueError, match="sizes must be"):
+        mask_votes(pts, views, sizes=np.ones(2))
+
+
+def test_connected_to_keeps_the_anchor_piece():
+    from rg_core.grounding.boxes import connected_to, map_spacing
+
+    rng = np.random.default_rng(0)
+    a = rng.uniform(0, 0.05, (200, 3))                 # dense piece at the origin
+    b = rng.uniform(0, 0.05, (300, 3)) + [1.0, 0, 0]    # a larger one 1 m away
+    pts = np.concatenate([a, b])
+    link = 3 * map_spacing(pts)
+    assert 0 < link < 0.1
+    keep = connected_to(pts, np.array([0.0, 0.0, 0.0]), link)
+    assert keep[:200].all() and not keep[200:].any()
+    keep = connected_to(pts, None, link)
+    assert keep[200:].all() and not keep[:200].any()
+    assert connected_to(pts[:1], None, link).all() and connected_to(pts, None, 0.0).all()

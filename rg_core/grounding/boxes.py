@@ -14,6 +14,42 @@ def robust_inliers(points: np.ndarray, k: float = 3.0) -> np.ndarray:
     return (np.abs(points - med) <= k * np.maximum(mad, 1e-3)).all(1)
 
 
+def map_spacing(points: np.ndarray, sample: int = 4000, seed: int = 0) -> float:
+    """Median nearest-neighbour distance (m) of points [N, 3] (a sample of them): the map's resolution."""
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, np.float64)
+    if len(pts) < 2:
+        return 0.0
+    sub = pts if len(pts) <= sample else pts[np.random.default_rng(seed).choice(len(pts), sample, replace=False)]
+    d, _ = cKDTree(pts).query(sub, k=2)
+    return float(np.median(d[:, 1]))
+
+
+def connected_to(points: np.ndarray, anchor: np.ndarray | None, link: float) -> np.ndarray:
+    """bool [N]: the points [N, 3] joined to `anchor` [3] by chains of steps of at most `link` (m),
+    starting from the point nearest the anchor; None: the largest such component. An object is one
+    piece in space: members that only share its instance feature (the table under it, a look-alike
+    elsewhere) are left out."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, np.float64)
+    n = len(pts)
+    if n < 2 or not link > 0:
+        return np.ones(n, bool)
+    tree = cKDTree(pts)
+    pairs = tree.query_pairs(link, output_type="ndarray")                     # [E, 2]
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else coo_matrix((n, n))
+    _, comp = connected_components(graph, directed=False)
+    if anchor is None:
+        keep = np.bincount(comp).argmax()
+    else:
+        keep = comp[int(tree.query(np.asarray(anchor, np.float64))[1])]
+    return comp == keep
+
+
 def group_boxes(points: np.ndarray):
     """points [N, 3] -> (aabb_min [3], aabb_max [3], obb_center [3], obb_rotation [3, 3], obb_extent [3]).
     Fewer than 4 points or coplanar points get an axis-aligned OBB (open3d's PCA box needs volume)."""

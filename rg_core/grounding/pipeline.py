@@ -15,7 +15,8 @@ import torch
 from ..config import RGConfig
 from ..geometry.conventions import backproject
 from ..render import rasterize
-from .boxes import group_boxes, robust_inliers
+from .boxes import connected_to, group_boxes, map_spacing, robust_inliers
+from .carve import MaskView, mask_votes
 from .grouping import Groups, cluster_instances
 from .relevancy import CANONICAL, relevancy
 from .result import GroundedObject, GroundingResult
@@ -41,6 +42,7 @@ class Grounder:
         self._text_cache: dict[str, torch.Tensor] = {}
         self._groups: dict[tuple, Groups] = {}
         self._vocab: tuple | None = None
+        self._spacing: tuple | None = None
 
     # ------------------------------------------------------------------------------ models
 
@@ -97,23 +99,45 @@ class Grounder:
 
     # ------------------------------------------------------------------------------ pipeline
 
-    def reference_view(self, target: torch.Tensor):
-        """Keyframe whose mask embedding is most similar to the target text [D]:
-        -> (keyframe, mask index, similarity, physical scale s*)."""
+    def _mask_candidates(self, target: torch.Tensor) -> list[tuple]:
+        """Per keyframe, its mask most similar to the target text [D]:
+        [(similarity, mask pixels, keyframe, mask index, scale)]."""
         by_index = {kf.index: kf for kf in self.mapper.keyframes}
-        cands = []  # (similarity, mask pixels, keyframe, mask index, scale)
+        cands = []
         for k, sup in self.mapper.supervision.by_keyframe.items():
             if k not in by_index or not len(sup.embeddings):
                 continue
             sims = torch.nn.functional.normalize(sup.embeddings.float(), dim=-1) @ target
             i = int(sims.argmax())
             cands.append((float(sims[i]), int(sup.masks[i].sum()), by_index[k], i, float(sup.scales[i])))
+        return cands
+
+    def reference_view(self, target: torch.Tensor, cands: list[tuple] | None = None):
+        """Keyframe whose mask embedding is most similar to the target text [D]:
+        -> (keyframe, mask index, similarity, physical scale s*)."""
+        cands = self._mask_candidates(target) if cands is None else cands
         if not cands:
             return None, -1, -2.0, 0.0
         # Among views about as similar as the best, the one that sees the target largest.
         top = max(c[0] for c in cands)
         s, _, kf, i, scale = max((c for c in cands if c[0] >= top - 0.02), key=lambda c: c[1])
         return kf, i, s, scale
+
+    def carve_views(self, cands: list[tuple]) -> list[MaskView]:
+        """The target's masks in up to `carve_views` keyframes: those whose best mask is about as
+        similar to the target as the best one (the same object seen again), largest first."""
+        n = self.gcfg.carve_views
+        if n <= 0 or not cands:
+            return []
+        top = max(c[0] for c in cands)
+        near = sorted((c for c in cands if c[0] >= max(top - 0.02, self.gcfg.min_mask_similarity)), key=lambda c: -c[1])
+        out = []
+        for _, _, kf, i, _ in near[:n]:
+            mask = self.mapper.supervision.by_keyframe[kf.index].masks[i]
+            if mask.shape == tuple(kf.depth.shape):
+                out.append(MaskView(np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64),
+                                    kf.depth.numpy(), mask))
+        return out
 
     def groups(self, scale: float, region: np.ndarray | None = None) -> Groups:
         """Clusters of instance features at one scale, over the Gaussians in `region` (bool [N];
@@ -153,6 +177,14 @@ class Grounder:
         d = (self.mapper.gaussians.means.detach() - centre).norm(dim=-1)
         return (d <= self.gcfg.region_scales * max(scale, 1e-3)).numpy()
 
+    def spacing(self) -> float:
+        """The map's median nearest-neighbour distance between Gaussians (m), cached per map state."""
+        m = self.mapper
+        key = (len(m.gaussians), m.frames_seen, self.field.steps if self.field is not None else 0)
+        if self._spacing is None or self._spacing[0] != key:
+            self._spacing = (key, map_spacing(m.gaussians.means.detach().numpy(), seed=self.gcfg.seed))
+        return self._spacing[1]
+
     def _decompress(self, z: torch.Tensor) -> torch.Tensor:  # [..., k] -> [..., D]
         return self.mapper.supervision.pca.pca.inverse(z)
 
@@ -183,7 +215,8 @@ class Grounder:
 
         t1 = time.perf_counter()
         target = self.encode([r.target])[0]
-        kf, mi, msim, scale = self.reference_view(target)
+        cands = self._mask_candidates(target)
+        kf, mi, msim, scale = self.reference_view(target, cands)
         t["reference_view"] = time.perf_counter() - t1
         if kf is None or msim < self.gcfg.min_mask_similarity:
             res.message = (f"no part of the map looks like {r.target!r}: best mask similarity {msim:.2f} "
@@ -241,7 +274,22 @@ class Grounder:
                 near = torch.topk(d, min(2 * mcs, len(d))).indices.numpy()
                 found.append((np.sort(near), float(d[near].mean())))
         found += [(groups.members(gi, grow=self.gcfg.grow_groups), float(max(sim[gi], 0.0))) for gi in chosen]
-        for ids, s_g in found[:max_results]:
+        link = self.gcfg.link_spacing * self.spacing()
+        z = float(fr.depth[py, px] / fr.alpha[py, px].clamp(min=1e-6))             # the surface there
+        Kd, c2w = np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64)
+        anchor = c2w[:3, :3] @ np.array([(px - Kd[0, 2]) * z / Kd[0, 0], (py - Kd[1, 2]) * z / Kd[1, 1], z]) + c2w[:3, 3]
+        views = self.carve_views(cands)
+        sizes = g.scales.detach().max(1).values.numpy()
+        votes = mask_votes(means, views, sizes) if views else None
+        for n, (ids, s_g) in enumerate(found[:max_results]):
+            if votes is not None:
+                # Carve what the target's masks see elsewhere; the first group also takes what
+                # several of them see inside (HDBSCAN splits a weakly trained object into pieces).
+                ids = ids[~votes.carved(self.gcfg.min_mask_votes)[ids]]
+                if n == 0:
+                    ids = np.union1d(ids, np.nonzero(votes.voted(self.gcfg.min_mask_votes))[0])
+            if link > 0 and len(ids) > 1:  # the first group holds the most relevant point; others their largest piece
+                ids = ids[connected_to(means[ids], anchor if n == 0 and z > 0 else None, link)]
             ids = ids[robust_inliers(means[ids], self.gcfg.outlier_mads)]
             if not len(ids):
                 continue

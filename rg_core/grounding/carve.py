@@ -1,0 +1,85 @@
+"""Mask votes on a Gaussian group: a Gaussian that a keyframe sees (its depth there agrees with the
+sensor's) outside that keyframe's mask of the target is not part of the target; one that several
+keyframes see inside it, and none more often outside, is.
+
+The instance field blends features over object borders, so a feature cluster can hold the table
+under an object or a neighbour's rim. The 2D masks that chose the target say where it is not; a
+Gaussian hidden in a view (behind the visible surface) or off-image learns nothing from it, so the
+occluded parts an amodal mask needs are kept.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class MaskView:
+    K: np.ndarray            # [3, 3] at the mask's size
+    cam_to_world: np.ndarray  # [4, 4] OpenCV axes
+    depth: np.ndarray        # [h, w] metres, 0 = unknown
+    mask: np.ndarray         # [h, w] bool: the target in this view
+
+
+@dataclass
+class MaskVotes:
+    inside: np.ndarray     # [N] views that see the point inside the target's mask
+    outside: np.ndarray    # [N] views that see it outside
+    projected: np.ndarray  # [N] views where it projects into the mask (seen or hidden)
+    on_image: np.ndarray   # [N] views where it projects onto the image
+
+    def carved(self, min_views: int = 2) -> np.ndarray:
+        """bool [N]: not the target: seen outside more often than inside, or in front of at least
+        `min_views` views and inside none of their masks' silhouettes (what a wider surface hides
+        everywhere, e.g. Gaussians sunk into the table under the object; the object's own hidden
+        back projects into its mask from the other side)."""
+        return (self.outside > self.inside) | ((self.projected == 0) & (self.on_image >= min_views))
+
+    def voted(self, min_votes: int = 2) -> np.ndarray:
+        """bool [N]: seen inside the mask by at least `min_votes` views and outside by fewer."""
+        return (self.inside >= min_votes) & (self.inside > self.outside)
+
+
+def mask_votes(points: np.ndarray, views: list[MaskView], sizes: np.ndarray | None = None, border_px: int = 1,
+               depth_tol_abs: float = 0.01, depth_tol_rel: float = 0.02, size_tol: float = 2.0) -> MaskVotes:
+    """points [N, 3] world, sizes [N] (largest std dev, m) -> how many views see each point inside
+    and outside their mask of the target (masks dilated by `border_px`), and in how many views it
+    projects into the mask or anywhere on the image, seen or hidden.
+    A view sees a point when the sensor depth there is within max(abs, rel * depth, size_tol * size)
+    of the point's: a Gaussian that large reaches the surface (one sunk into the table is the table)."""
+    import cv2
+
+    pts = np.asarray(points, np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"carve: points must be [N, 3], got {list(pts.shape)}")
+    tol_size = np.zeros(len(pts)) if sizes is None else size_tol * np.asarray(sizes, np.float64).reshape(-1)
+    if tol_size.shape != (len(pts),):
+        raise ValueError(f"mask_votes: sizes must be [N] = [{len(pts)}], got {list(np.shape(sizes))}")
+    inside, outside, projected, on_image = (np.zeros(len(pts), np.int32) for _ in range(4))
+    for v in views:
+        h, w = v.mask.shape
+        if v.depth.shape != (h, w):
+            raise ValueError(f"carve: depth {v.depth.shape} and mask {(h, w)} differ")
+        w2c = np.linalg.inv(np.asarray(v.cam_to_world, np.float64))
+        pc = pts @ w2c[:3, :3].T + w2c[:3, 3]
+        z = pc[:, 2]
+        front = z > 1e-6
+        u = np.full(len(pts), -1, np.int64)
+        r = np.full(len(pts), -1, np.int64)
+        u[front] = np.floor(v.K[0, 0] * pc[front, 0] / z[front] + v.K[0, 2]).astype(np.int64)
+        r[front] = np.floor(v.K[1, 1] * pc[front, 1] / z[front] + v.K[1, 2]).astype(np.int64)
+        on = front & (u >= 0) & (u < w) & (r >= 0) & (r < h)
+        d = np.zeros(len(pts))
+        d[on] = v.depth[r[on], u[on]]
+        seen = on & (d > 0) & (np.abs(z - d) <= np.maximum(np.maximum(depth_tol_abs, depth_tol_rel * d), tol_size))
+        m = v.mask.astype(np.uint8)
+        if border_px > 0:
+            m = cv2.dilate(m, np.ones((2 * border_px + 1,) * 2, np.uint8))
+        hit = np.zeros(len(pts), bool)
+        hit[on] = m[r[on], u[on]] > 0
+        inside += seen & hit
+        outside += seen & ~hit
+        projected += hit
+        on_image += on
+    return MaskVotes(inside, outside, projected, on_image)
