@@ -29,12 +29,12 @@ class MaskVotes:
     projected: np.ndarray  # [N] views where it projects into the mask (seen or hidden)
     on_image: np.ndarray   # [N] views where it projects onto the image
 
-    def carved(self, min_views: int = 2) -> np.ndarray:
+    def carved(self, min_views: int = 2, silhouette: float = 0.5) -> np.ndarray:
         """bool [N]: not the target: seen outside more often than inside, or in front of at least
-        `min_views` views and inside none of their masks' silhouettes (what a wider surface hides
-        everywhere, e.g. Gaussians sunk into the table under the object; the object's own hidden
-        back projects into its mask from the other side)."""
-        return (self.outside > self.inside) | ((self.projected == 0) & (self.on_image >= min_views))
+        `min_views` views and inside fewer than `silhouette` of their masks' silhouettes (what a
+        wider surface hides, e.g. Gaussians sunk into the table around the object; the object's own
+        hidden back projects into its mask from most sides)."""
+        return (self.outside > self.inside) | ((self.projected < silhouette * self.on_image) & (self.on_image >= min_views))
 
     def voted(self, min_votes: int = 2) -> np.ndarray:
         """bool [N]: seen inside the mask by at least `min_votes` views and outside by fewer."""
