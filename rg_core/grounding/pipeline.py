@@ -279,15 +279,21 @@ class Grounder:
         Kd, c2w = np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64)
         anchor = c2w[:3, :3] @ np.array([(px - Kd[0, 2]) * z / Kd[0, 0], (py - Kd[1, 2]) * z / Kd[1, 1], z]) + c2w[:3, 3]
         views = self.carve_views(cands)
-        sizes = g.scales.detach().max(1).values.numpy()
-        votes = mask_votes(means, views, sizes) if views else None
+        carved = voted = None
+        if views:
+            # Votes only where they can matter: the groups and what lies within 4 s* of the peak.
+            near = np.nonzero(np.linalg.norm(means - anchor, axis=1) <= 4 * scale)[0] if z > 0 else np.zeros(0, np.int64)
+            cand = np.unique(np.concatenate([ids for ids, _ in found[:max_results]] + [near]).astype(np.int64))
+            v = mask_votes(means[cand], views, g.scales.detach()[torch.from_numpy(cand)].max(1).values.numpy())
+            carved, voted = np.zeros(len(means), bool), np.zeros(len(means), bool)
+            carved[cand], voted[cand] = v.carved(self.gcfg.min_mask_votes), v.voted(self.gcfg.min_mask_votes)
         for n, (ids, s_g) in enumerate(found[:max_results]):
-            if votes is not None:
+            if carved is not None:
                 # Carve what the target's masks see elsewhere; the first group also takes what
                 # several of them see inside (HDBSCAN splits a weakly trained object into pieces).
-                ids = ids[~votes.carved(self.gcfg.min_mask_votes)[ids]]
+                ids = ids[~carved[ids]]
                 if n == 0:
-                    ids = np.union1d(ids, np.nonzero(votes.voted(self.gcfg.min_mask_votes))[0])
+                    ids = np.union1d(ids, np.nonzero(voted)[0])
             if link > 0 and len(ids) > 1:  # the first group holds the most relevant point; others their largest piece
                 ids = ids[connected_to(means[ids], anchor if n == 0 and z > 0 else None, link)]
             ids = ids[robust_inliers(means[ids], self.gcfg.outlier_mads)]
