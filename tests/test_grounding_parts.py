@@ -156,3 +156,23 @@ def test_connected_to_keeps_the_anchor_piece():
     keep = connected_to(pts, None, link)
     assert keep[200:].all() and not keep[:200].any()
     assert connected_to(pts[:1], None, link).all() and connected_to(pts, None, 0.0).all()
+
+
+def test_relevancy_in_pca_space_matches_decompressing_first():
+    from rg_core.grounding.relevancy import relevancy_pca
+    from rg_core.perception.pca import PCA
+
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(200, 48, generator=g) + 2.0                 # embeddings with a mean away from 0
+    for k in (16, 64):                                          # 64 > rank: zero-padded components
+        pca = PCA.fit(x[:40], k)
+        z = torch.randn(7, 9, pca.dim, generator=g)             # [h, w, k] codes, any values
+        q, c = torch.randn(48, generator=g), torch.randn(4, 48, generator=g)
+        want = relevancy(pca.inverse(z), q, c)
+        torch.testing.assert_close(relevancy_pca(z, pca.components, pca.mean, q, c), want, atol=1e-5, rtol=1e-5)
+    # The code of the mean (decompresses to the mean exactly) and huge codes stay finite in [0, 1].
+    ext = torch.cat([torch.zeros(1, pca.dim), torch.full((1, pca.dim), 1e30)])
+    r = relevancy_pca(ext, pca.components, pca.mean, q, c)
+    assert torch.isfinite(r).all() and (r >= 0).all() and (r <= 1).all()
+    with pytest.raises(ValueError, match="relevancy_pca"):
+        relevancy_pca(z[..., :3], pca.components, pca.mean, q, c)

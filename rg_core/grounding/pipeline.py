@@ -18,7 +18,7 @@ from ..render import rasterize
 from .boxes import connected_to, group_boxes, map_spacing, robust_inliers
 from .carve import MaskView, mask_votes
 from .grouping import Groups, cluster_instances
-from .relevancy import CANONICAL, relevancy
+from .relevancy import CANONICAL, relevancy, relevancy_pca
 from .result import GroundedObject, GroundingResult
 from .vocabulary import build_vocabulary, looks_like_name
 
@@ -324,8 +324,9 @@ class Grounder:
         """Relevancy [h, w] of `target` at `scale` from any camera (0 where the map is not opaque),
         and the field render it came from."""
         fr = self.field.render(K, cam_to_world, width, height)
-        lang = self._decompress(self.field.language(fr.latent, scale))       # [h, w, D]
-        rel = relevancy(lang, self.encode([target])[0], self.encode(list(CANONICAL)))
+        pca = self.mapper.supervision.pca.pca
+        rel = relevancy_pca(self.field.language(fr.latent, scale), pca.components, pca.mean,   # [h, w]
+                            self.encode([target])[0], self.encode(list(CANONICAL)))
         return torch.where(fr.alpha > self.gcfg.mask_alpha, rel, torch.zeros_like(rel)), fr
 
     def _more_instances(self, groups: Groups, order: list[int], target, canon, scale, k: int) -> list[int]:
