@@ -219,12 +219,14 @@ class MapWorker:
             done = set(sset.by_keyframe) if sset is not None else set()
             if all(kf.index in done for kf in self.mapper.keyframes):
                 return False
+            from rg_core.perception.multiview import aggregate_multiview
             from rg_core.perception.supervision import supervise_map
 
             gen, emb = self._perception
             t = time.perf_counter()
             try:
                 sset = supervise_map(self.mapper, gen, emb)
+                mv = aggregate_multiview(self.mapper, sset)  # one embedding per object across keyframes (as rg eval)
             except Exception as exc:  # noqa: BLE001 - a perception failure must not stop mapping
                 self.log.error("supervision failed, feature training is off: %s: %s", type(exc).__name__, exc)
                 self.wcfg.features = False
@@ -232,7 +234,8 @@ class MapWorker:
                 return False
             self._supervised_count = len(sset.by_keyframe)
             self._train_seconds, self._train_blocked = 0.0, ""
-            self.log.info("supervision: %d keyframes (%.2f s)", self._supervised_count, time.perf_counter() - t)
+            self.log.info("supervision: %d keyframes, %s masks in %s multi-view objects (%.2f s)", self._supervised_count,
+                          mv.get("masks", 0), mv.get("objects", 0), time.perf_counter() - t)
             return True
 
     def _train(self) -> bool:
