@@ -115,29 +115,35 @@ def test_mask_votes_carve_what_views_see_elsewhere_and_keep_hidden_parts():
     from rg_core.grounding.carve import MaskView, mask_votes
 
     K = np.array([[100.0, 0, 32], [0, 100.0, 32], [0, 0, 1]])
-    depth = np.ones((64, 64))                    # a floor at z = 0, 1 m below every camera
-    mask = np.zeros((64, 64), bool)
     views = []
-    for x in (-0.02, 0.0, 0.02):
+    for j, x in enumerate((-0.02, 0.0, 0.02)):
         c2w = _camera_looking_down(x)
         u0 = int(32 + 100 * (0.0 - x))            # the target: a 0.1 m patch of floor around x = 0
-        m = mask.copy()
+        m = np.zeros((64, 64), bool)
         m[27:38, u0 - 5:u0 + 6] = True
+        depth = np.ones((64, 64))                 # a floor at z = 0, 1 m below every camera ...
+        if j == 2:
+            depth[30:35, u0 - 2:u0 + 3] = 0.5     # ... and in the last view an occluder over the target
         views.append(MaskView(K, c2w, depth, m))
-    pts = np.array([[0.0, 0.0, 0.0],     # on the target: seen inside by all
+    pts = np.array([[0.0, 0.0, 0.0],     # on the target: seen inside by two views, hidden in the third: kept
                     [0.2, 0.0, 0.0],     # on the floor elsewhere: seen outside by all
-                    [0.0, 0.0, -0.3],    # under the target, hidden, inside its silhouette: kept (amodal)
+                    [0.0, 0.0, -0.3],    # under the target: no view sees it, no evidence it exists
                     [0.2, 0.0, -0.04],   # sunk 4 cm into the floor elsewhere: hidden, outside every silhouette
-                    [0.2, 0.0, -0.01],   # 1 cm into the floor: within the 2% depth tolerance, seen outside
+                    [0.2, 0.0, -0.01],   # 1 cm into the floor: within the 2 cm depth tolerance, seen outside
                     [5.0, 0.0, 0.0]])    # off every image: no evidence, kept
     v = mask_votes(pts, views)
-    np.testing.assert_array_equal(v.inside, [3, 0, 0, 0, 0, 0])
+    np.testing.assert_array_equal(v.inside, [2, 0, 0, 0, 0, 0])
     np.testing.assert_array_equal(v.outside, [0, 3, 0, 0, 3, 0])
-    np.testing.assert_array_equal(v.carved(2), [False, True, False, True, True, False])
+    np.testing.assert_array_equal(v.projected, [3, 0, 3, 0, 0, 0])
+    np.testing.assert_array_equal(v.carved(2), [False, True, True, True, True, False])
     np.testing.assert_array_equal(v.voted(2), [True, False, False, False, False, False])
+    assert not v.voted(3)[0]
     # A Gaussian as large as its depth gap reaches the surface: seen.
     big = mask_votes(pts[3:4], views, sizes=np.array([0.025]))
     assert big.outside[0] == 3
+    # A mask dilated by a pixel takes in the floor right beside the target.
+    rim = np.array([[0.065, 0.0, 0.0]])
+    assert mask_votes(rim, views).inside[0] == 0 and mask_votes(rim, views, border_px=1).inside[0] == 3
     with pytest.raises(ValueError, match="sizes must be"):
         mask_votes(pts, views, sizes=np.ones(2))
 

@@ -3,9 +3,11 @@ sensor's) outside that keyframe's mask of the target is not part of the target; 
 keyframes see inside it, and none more often outside, is.
 
 The instance field blends features over object borders, so a feature cluster can hold the table
-under an object or a neighbour's rim. The 2D masks that chose the target say where it is not; a
-Gaussian hidden in a view (behind the visible surface) or off-image learns nothing from it, so the
-occluded parts an amodal mask needs are kept.
+under an object or a neighbour's rim. The 2D masks that chose the target say where it is and is
+not; a view in which a Gaussian is hidden (behind the visible surface) or off-image says nothing
+about it, so parts occluded from one camera, which an amodal mask needs, survive on the word of
+the views that see them. Masks are not dilated: a thin object's mask grown by a pixel takes in
+the table beside it.
 """
 from __future__ import annotations
 
@@ -30,19 +32,22 @@ class MaskVotes:
     on_image: np.ndarray   # [N] views where it projects onto the image
 
     def carved(self, min_views: int = 2, silhouette: float = 0.5) -> np.ndarray:
-        """bool [N]: not the target: seen outside more often than inside, or in front of at least
-        `min_views` views and inside fewer than `silhouette` of their masks' silhouettes (what a
-        wider surface hides, e.g. Gaussians sunk into the table around the object; the object's own
-        hidden back projects into its mask from most sides)."""
-        return (self.outside > self.inside) | ((self.projected < silhouette * self.on_image) & (self.on_image >= min_views))
+        """bool [N]: not the target. Among points in front of at least `min_views` views: seen
+        outside the mask more often than inside; or seen by none of them (no evidence: the mapper
+        seeds only what some view saw, so that is a Gaussian sunk under a surface or drifted);
+        or inside fewer than `silhouette` of the masks' silhouettes (what a wider surface hides
+        around the object). Points off every image keep their cluster's word."""
+        enough = self.on_image >= min_views
+        unseen = (self.inside + self.outside) == 0
+        return (self.outside > self.inside) | ((unseen | (self.projected < silhouette * self.on_image)) & enough)
 
     def voted(self, min_votes: int = 2) -> np.ndarray:
         """bool [N]: seen inside the mask by at least `min_votes` views and outside by fewer."""
         return (self.inside >= min_votes) & (self.inside > self.outside)
 
 
-def mask_votes(points: np.ndarray, views: list[MaskView], sizes: np.ndarray | None = None, border_px: int = 1,
-               depth_tol_abs: float = 0.01, depth_tol_rel: float = 0.02, size_tol: float = 2.0) -> MaskVotes:
+def mask_votes(points: np.ndarray, views: list[MaskView], sizes: np.ndarray | None = None, border_px: int = 0,
+               depth_tol_abs: float = 0.02, depth_tol_rel: float = 0.02, size_tol: float = 2.0) -> MaskVotes:
     """points [N, 3] world, sizes [N] (largest std dev, m) -> how many views see each point inside
     and outside their mask of the target (masks dilated by `border_px`), and in how many views it
     projects into the mask or anywhere on the image, seen or hidden.

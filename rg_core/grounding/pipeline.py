@@ -372,7 +372,7 @@ class Grounder:
         full = rasterize(*args, member, cam)
         alone = rasterize(*args, member, cam, subset=torch.from_numpy(ids))
         a = self.gcfg.mask_alpha
-        amodal = (alone.alpha > a).numpy()
         share = full.channels[..., 0] / full.alpha.clamp(min=1e-6)
-        visible = ((full.alpha > a) & (share > 0.5)).numpy()
-        return amodal, visible
+        visible = (full.alpha > a) & (share > 0.5)
+        amodal = alone.alpha > a
+        return amodal.numpy(), visible.numpy()
