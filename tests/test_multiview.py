@@ -33,7 +33,7 @@ def test_masks_of_one_object_share_an_embedding(oracle_field, synth_scene):
         stats = aggregate_multiview(mapper, sset)
         after = acc()
         print(f"name top-1 per view {before:.3f} -> multi-view {after:.3f}", stats)
-        assert stats["objects"] <= 3 * len(synth_scene.objects) and stats["views_per_object_mean"] >= 3  # measured: 11 groups, 6.4 views each
+        assert stats["objects"] <= 3 * len(synth_scene.objects) and stats["views_per_object_mean"] >= 3  # measured: 6 groups, 11.7 views each (11 groups, 6.4 views on Gaussian ids before densification: 20)
         assert after >= before and after >= 0.9
         for k, sup in sset.by_keyframe.items():
             assert sup.embeddings_view is not None and sup.embeddings_view.shape == sup.embeddings.shape

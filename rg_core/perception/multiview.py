@@ -2,8 +2,10 @@
 keyframes gets one embedding, the area-weighted mean of its per-view embeddings.
 
 Masks are associated through the 3D map: each mask collects the Gaussians that dominate its pixels
-(the rasterizer's `ids`); two masks from different keyframes are the same object when those
-Gaussian sets overlap (Jaccard >= min_jaccard) and their physical scales agree within a factor.
+(the rasterizer's `ids`), as the voxels (one map spacing wide) that hold them; two masks from
+different keyframes are the same object when those voxel sets overlap (Jaccard >= min_jaccard) and
+their physical scales agree within a factor. Voxels, not Gaussian ids: a keyframe's densification
+adds small Gaussians that dominate its own view, on the same surface the other views see.
 """
 from __future__ import annotations
 
@@ -11,13 +13,23 @@ import numpy as np
 import torch
 
 
-def mask_gaussians(mapper, sset) -> tuple[list[tuple[int, int]], "object"]:
-    """Incidence of masks and Gaussians: rows (keyframe index, mask index), CSR matrix [masks, N]."""
+def mask_gaussians(mapper, sset, voxel_spacings: float = 1.0) -> tuple[list[tuple[int, int]], "object"]:
+    """Incidence of masks and the voxels of the Gaussians that dominate them: rows (keyframe index,
+    mask index), CSR matrix [masks, V]; `voxel_spacings` <= 0 uses the Gaussians themselves."""
     from scipy.sparse import csr_matrix
+
+    from ..grounding.boxes import map_spacing
 
     kfs = {kf.index: kf for kf in mapper.keyframes}
     rows, cols, keys = [], [], []
-    N = len(mapper.gaussians)
+    means = mapper.gaussians.means.detach().numpy()
+    N = len(means)
+    cell = np.arange(N)
+    if voxel_spacings > 0 and N > 1:
+        vox = max(voxel_spacings * map_spacing(means), 1e-6)
+        _, cell = np.unique(np.floor(means / vox).astype(np.int64), axis=0, return_inverse=True)
+        cell = cell.reshape(-1)
+    V = int(cell.max()) + 1 if N else 1
     for k in sorted(sset.by_keyframe):
         sup = sset.by_keyframe[k]
         if k not in kfs or not len(sup.masks):
@@ -29,12 +41,12 @@ def mask_gaussians(mapper, sset) -> tuple[list[tuple[int, int]], "object"]:
         if ids.shape != sup.masks.shape[1:]:
             raise ValueError(f"multiview: keyframe {k} masks are {sup.masks.shape[1:]}, render is {ids.shape}")
         for i, m in enumerate(sup.masks):
-            g = np.unique(ids[m & (ids >= 0)])
+            g = np.unique(cell[ids[m & (ids >= 0)]])
             rows.append(np.full(len(g), len(keys))), cols.append(g)
             keys.append((k, i))
     r = np.concatenate(rows) if rows else np.zeros(0, np.int64)
     c = np.concatenate(cols) if cols else np.zeros(0, np.int64)
-    return keys, csr_matrix((np.ones(len(r), np.float32), (r, c)), shape=(len(keys), max(N, 1)))
+    return keys, csr_matrix((np.ones(len(r), np.float32), (r, c)), shape=(len(keys), max(V, 1)))
 
 
 def associate(mapper, sset, min_jaccard: float = 0.5, max_scale_ratio: float = 1.5) -> tuple[list, np.ndarray]:

@@ -64,8 +64,10 @@ class SeedEverywhereMapper(Mapper):
     """The saving 'seed only unexplained pixels' turned off: a keyframe seeds at every valid depth
     pixel (one per stride block), as a mapper without the explained-pixel test would."""
 
-    def _seed(self, fr, unexplained: torch.Tensor):
-        return super()._seed(fr, torch.from_numpy(fr.depth) > 0)
+    def _seed(self, fr, unexplained: torch.Tensor, depth=None, stride=None):
+        if depth is None:  # the unexplained-pixel seeding (densification seeds stay as they are)
+            unexplained = torch.from_numpy(fr.depth) > 0
+        return super()._seed(fr, unexplained, depth, stride)
 
 
 @torch.no_grad()
