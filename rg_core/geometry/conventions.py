@@ -104,15 +104,21 @@ def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarr
     return T
 
 
-def backproject(depth: np.ndarray, K: np.ndarray, c2w: np.ndarray | None = None) -> np.ndarray:
-    """Depth map [H, W] in metres -> points [H, W, 3] (camera frame, or world if c2w given)."""
-    H, W = depth.shape
-    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
-    z = depth.astype(np.float64)
+def pixels_to_points(u, v, z, K: np.ndarray, c2w: np.ndarray | None = None) -> np.ndarray:
+    """Pixel coordinates u, v and depth z (m), arrays of one shape [...] -> points [..., 3] (camera
+    frame, or world if c2w given)."""
+    u, v, z = (np.asarray(a, np.float64) for a in (u, v, z))
     pts = np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], axis=-1)
     if c2w is not None:
         pts = pts @ c2w[:3, :3].T + c2w[:3, 3]
     return pts
+
+
+def backproject(depth: np.ndarray, K: np.ndarray, c2w: np.ndarray | None = None) -> np.ndarray:
+    """Depth map [H, W] in metres -> points [H, W, 3] (camera frame, or world if c2w given)."""
+    H, W = depth.shape
+    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    return pixels_to_points(u, v, depth, K, c2w)
 
 
 def project(points_world: np.ndarray, K: np.ndarray, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry.conventions import project
+
 
 @dataclass
 class MaskView:
@@ -57,7 +59,7 @@ def mask_votes(points: np.ndarray, views: list[MaskView], sizes: np.ndarray | No
 
     pts = np.asarray(points, np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"carve: points must be [N, 3], got {list(pts.shape)}")
+        raise ValueError(f"mask_votes: points must be [N, 3], got {list(pts.shape)}")
     tol_size = np.zeros(len(pts)) if sizes is None else size_tol * np.asarray(sizes, np.float64).reshape(-1)
     if tol_size.shape != (len(pts),):
         raise ValueError(f"mask_votes: sizes must be [N] = [{len(pts)}], got {list(np.shape(sizes))}")
@@ -65,15 +67,12 @@ def mask_votes(points: np.ndarray, views: list[MaskView], sizes: np.ndarray | No
     for v in views:
         h, w = v.mask.shape
         if v.depth.shape != (h, w):
-            raise ValueError(f"carve: depth {v.depth.shape} and mask {(h, w)} differ")
-        w2c = np.linalg.inv(np.asarray(v.cam_to_world, np.float64))
-        pc = pts @ w2c[:3, :3].T + w2c[:3, 3]
-        z = pc[:, 2]
+            raise ValueError(f"mask_votes: depth {v.depth.shape} and mask {(h, w)} differ")
+        uv, z = project(pts, np.asarray(v.K, np.float64), np.asarray(v.cam_to_world, np.float64))
         front = z > 1e-6
         u = np.full(len(pts), -1, np.int64)
         r = np.full(len(pts), -1, np.int64)
-        u[front] = np.floor(v.K[0, 0] * pc[front, 0] / z[front] + v.K[0, 2]).astype(np.int64)
-        r[front] = np.floor(v.K[1, 1] * pc[front, 1] / z[front] + v.K[1, 2]).astype(np.int64)
+        u[front], r[front] = np.floor(uv[front]).astype(np.int64).T
         on = front & (u >= 0) & (u < w) & (r >= 0) & (r < h)
         d = np.zeros(len(pts))
         d[on] = v.depth[r[on], u[on]]

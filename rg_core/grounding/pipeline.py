@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from ..config import RGConfig
-from ..geometry.conventions import backproject
+from ..geometry.conventions import backproject, pixels_to_points
 from ..render import rasterize
 from .boxes import connected_to, group_boxes, map_spacing, robust_inliers
 from .carve import MaskView, mask_votes
@@ -276,8 +276,7 @@ class Grounder:
         found += [(groups.members(gi, grow=self.gcfg.grow_groups), float(max(sim[gi], 0.0))) for gi in chosen]
         link = self.gcfg.link_spacing * self.spacing()
         z = float(fr.depth[py, px] / fr.alpha[py, px].clamp(min=1e-6))             # the surface there
-        Kd, c2w = np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64)
-        anchor = c2w[:3, :3] @ np.array([(px - Kd[0, 2]) * z / Kd[0, 0], (py - Kd[1, 2]) * z / Kd[1, 1], z]) + c2w[:3, 3]
+        anchor = pixels_to_points(px, py, z, np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64))
         views = self.carve_views(cands)
         carved = voted = None
         if views:

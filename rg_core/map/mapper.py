@@ -110,9 +110,7 @@ class Mapper:
                 out = self.render(fr.K, fr.cam_to_world, w, h)
                 unexplained = self._unexplained(out, depth_t, valid)
                 explained = valid & ~unexplained
-                colour_err = (out.channels - rgb_t).abs().mean(-1)  # [h, w]
-                photo = float(colour_err[explained].mean()) if explained.any() else 1.0
-                # Detail the map lacks: surfaces it has, in colours it cannot hold (densification).
+                photo = float((out.channels - rgb_t).abs().mean(-1)[explained].mean()) if explained.any() else 1.0
             else:
                 unexplained, photo = valid.clone(), 1.0
         frac = float(unexplained.sum()) / max(int(valid.sum()), 1)
