@@ -1,6 +1,7 @@
 """2D supervision figures (issue 5): mask recall@0.5 and masks / seconds per view of the offline
 RGB-D generator; name top-1 of the offline ConSE embedder on ground-truth masks, per view and after
-multi-view aggregation through the map; the same on real YCB photos; PCA explained variance.
+multi-view aggregation through the map, against plain ConSE (no mirror image, no colour term)
+measured in the same run; the same on real YCB photos.
 
     python benchmarks/bench_perception.py [--views 20] [--seeds 1 2 3] [--json]
 """
@@ -65,9 +66,10 @@ def masks_section(scenes) -> dict:
             "seconds_per_view": round(float(np.mean(secs)), 3)}
 
 
-def conse_section(scenes, embedder) -> dict:
-    """Per view: ground-truth visible masks embedded with ConSE, nearest scene name. Multi-view:
-    the scene mapped, the same masks as supervision, aggregated across keyframes through the map."""
+def conse_section(scenes, embedders: dict) -> dict:
+    """Per view: ground-truth visible masks embedded with each embedder, nearest scene name.
+    Multi-view: the scene mapped once, the same masks as supervision, aggregated across keyframes
+    through the map (the same association for every embedder: it uses masks and scales only)."""
     from rg_core.config import MapConfig
     from rg_core.field.oracle import working_ids
     from rg_core.map.mapper import Mapper
@@ -76,15 +78,13 @@ def conse_section(scenes, embedder) -> dict:
     from rg_core.perception.multiview import aggregate_multiview
     from rg_core.perception.supervision import KeyframeSupervision, SupervisionSet
 
-    text = embedder.encode_texts
-    per_view, multi, stats = [], [], []
+    rows = {name: {"per_view": [], "multi": [], "stats": []} for name in embedders}
     for sc in scenes:
         names = [o.name for o in sc.objects]
         by_id = {o.id: o for o in sc.objects}
         mapper = Mapper(MapConfig(final_iters=50))
         stream_frames(mapper, sc.train, progress=False)
-        sset = SupervisionSet()
-        truth = {}
+        views = []    # (keyframe index, rgb, masks, names)
         for kf in mapper.keyframes:
             K, c2w, w, h, ids = working_ids(sc.train[kf.index], kf.size[0])
             rgb = (kf.rgb.numpy() * 255).round().astype(np.uint8)
@@ -94,24 +94,29 @@ def conse_section(scenes, embedder) -> dict:
                 if oid == 0 or oid not in by_id or m.mean() < 0.005:
                     continue
                 ms.append(m), ns.append(by_id[int(oid)].name)
-            if not ms:
-                continue
-            emb = embedder.encode_images([mask_crop(rgb, m, margin=embedder.crop_margin, fill=embedder.crop_fill)
-                                          for m in ms])
-            sset.add(kf.index, KeyframeSupervision(np.stack(ms), np.ones(len(ms), np.float32), np.ones(len(ms), np.int8),
-                                                   np.full(len(ms), 0.05, np.float32), emb))
-            truth[kf.index] = ns
-        mapper.supervision = sset
-        before = torch.cat([sset.by_keyframe[k].embeddings for k in truth])
-        flat = [n for k in truth for n in truth[k]]
-        per_view.append((top1(before, names, flat, text), len(flat)))
-        stats.append(aggregate_multiview(mapper, sset))
-        after = torch.cat([sset.by_keyframe[k].embeddings for k in truth])
-        multi.append((top1(after, names, flat, text), len(flat)))
-    wavg = lambda rows: round(sum(a * n for a, n in rows) / max(sum(n for _, n in rows), 1), 4)
-    return {"top1_per_view": wavg(per_view), "top1_multiview": wavg(multi), "pairs": sum(n for _, n in per_view),
-            "per_scene": [{"per_view": round(a, 3), "multiview": round(b, 3)} for (a, _), (b, _) in zip(per_view, multi)],
-            "association": stats}
+            if ms:
+                views.append((kf.index, rgb, ms, ns))
+        flat = [n for _, _, _, ns in views for n in ns]
+        for name, embedder in embedders.items():
+            text = embedder.encode_texts
+            sset = SupervisionSet()
+            for k, rgb, ms, ns in views:
+                emb = embedder.encode_images([mask_crop(rgb, m, margin=embedder.crop_margin, fill=embedder.crop_fill)
+                                              for m in ms])
+                sset.add(k, KeyframeSupervision(np.stack(ms), np.ones(len(ms), np.float32), np.ones(len(ms), np.int8),
+                                                np.full(len(ms), 0.05, np.float32), emb))
+            mapper.supervision = sset
+            before = torch.cat([sset.by_keyframe[k].embeddings for k, *_ in views])
+            rows[name]["per_view"].append((top1(before, names, flat, text), len(flat)))
+            rows[name]["stats"].append(aggregate_multiview(mapper, sset))
+            after = torch.cat([sset.by_keyframe[k].embeddings for k, *_ in views])
+            rows[name]["multi"].append((top1(after, names, flat, text), len(flat)))
+    wavg = lambda rs: round(sum(a * n for a, n in rs) / max(sum(n for _, n in rs), 1), 4)
+    return {name: {"top1_per_view": wavg(r["per_view"]), "top1_multiview": wavg(r["multi"]),
+                   "pairs": sum(n for _, n in r["per_view"]),
+                   "per_scene": [{"per_view": round(a, 3), "multiview": round(b, 3)}
+                                 for (a, _), (b, _) in zip(r["per_view"], r["multi"])],
+                   "association": r["stats"]} for name, r in rows.items()}
 
 
 def ycb_section(embedder) -> dict:
@@ -147,8 +152,12 @@ def main(argv=None) -> int:
 
     scenes = [scene(s, a.views, out) for s in a.seeds]
     embedder = make_embedder("conse")
+    # Baseline in the same run: plain ConSE (no mirror image, no colour term).
+    plain = make_embedder("conse", colour_weight=0.0, mirror=False)
+    conse = conse_section(scenes, {"conse": embedder, "conse_plain": plain})
     res = {"scenes": f"{len(scenes)} x {a.views} views, 320x240, 7 objects, seeds {a.seeds}",
-           "masks": masks_section(scenes), "conse": conse_section(scenes, embedder), "ycb": ycb_section(embedder)}
+           "masks": masks_section(scenes), "conse": conse["conse"], "conse_plain": conse["conse_plain"],
+           "ycb": ycb_section(embedder), "ycb_plain": ycb_section(plain)}
     print(json.dumps(res, indent=None if a.json else 1))
     return 0
 

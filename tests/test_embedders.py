@@ -114,3 +114,57 @@ def test_conse_offline_default(conse_embedder, synth_scene):
     # Class probabilities are a distribution over the 1000 ImageNet classes.
     p = conse.class_probs(crops)
     assert p.shape == (len(crops), 1000) and torch.allclose(p.sum(-1), torch.ones(len(crops)), atol=1e-4)
+
+
+def test_colour_histogram_names_basic_colours():
+    from rg_core.perception.colour_names import COLOUR_TERMS, colour_histogram
+
+    cases = {(230, 20, 20): "red", (255, 128, 0): "orange", (240, 230, 30): "yellow", (20, 180, 40): "green",
+             (20, 40, 220): "blue", (128, 0, 200): "purple", (255, 105, 180): "pink", (110, 60, 20): "brown",
+             (250, 250, 250): "white", (128, 128, 128): "grey", (10, 10, 10): "black", (200, 0, 30): "red"}
+    for rgb, word in cases.items():
+        h = colour_histogram(np.array([rgb] * 5, np.uint8))
+        assert COLOUR_TERMS[int(h.argmax())] == word and h.max() == 1.0, (rgb, h)
+    mixed = colour_histogram(np.array([(20, 40, 220)] * 3 + [(240, 230, 30)], np.uint8))
+    assert mixed[COLOUR_TERMS.index("blue")] == 0.75 and abs(mixed.sum() - 1) < 1e-12
+    with pytest.raises(ValueError, match="no pixels"):
+        colour_histogram(np.zeros((0, 3), np.uint8))
+    with pytest.raises(ValueError, match="expected uint8"):
+        colour_histogram(np.zeros((4, 3), np.float32))
+
+
+def test_conse_colour_term_tells_colours_apart(conse_embedder):
+    import copy
+
+    conse = conse_embedder
+    # The same disc in blue and in yellow on the crop fill: the classifier sees two similar
+    # objects; the colour term must pull each towards its own colour word.
+    yy, xx = np.mgrid[:64, :64]
+    disc = (yy - 32) ** 2 + (xx - 32) ** 2 < 24 ** 2
+    crops = []
+    for rgb in ((20, 40, 220), (240, 230, 30)):
+        c = np.empty((64, 64, 3), np.uint8)
+        c[:] = conse.crop_fill
+        c[disc] = rgb
+        crops.append(c)
+    e = conse.encode_images(crops)
+    t = conse.encode_texts(["blue cup", "yellow cup"])
+    s = e @ t.T
+    assert s[0, 0] > s[0, 1] and s[1, 1] > s[1, 0], s
+    # Without the colour term the embedding is plain ConSE: the top-k class mixture.
+    plain = copy.copy(conse)
+    plain.colour_weight = 0.0
+    p = conse.class_probs(crops)
+    top = p.topk(conse.top_k, dim=-1)
+    w = top.values / top.values.sum(-1, keepdim=True)
+    expect = torch.nn.functional.normalize((w[..., None] * conse.class_emb[top.indices]).sum(1), dim=-1)
+    torch.testing.assert_close(plain.encode_images(crops), expect)
+    assert (plain.encode_images(crops) - e).norm(dim=-1).min() > 0.05
+    # Mirror averaging: a crop and its mirror image get the same class probabilities.
+    torch.testing.assert_close(conse.class_probs([crops[0][:, ::-1].copy()]), p[:1], atol=1e-5, rtol=1e-4)
+    # A crop with no object pixels (all fill) has no colour term: finite, unit, equal to plain.
+    blank = np.empty((32, 32, 3), np.uint8)
+    blank[:] = conse.crop_fill
+    torch.testing.assert_close(conse.encode_images([blank]), plain.encode_images([blank]))
+    with pytest.raises(ValueError, match="colour_weight"):
+        type(conse)(colour_weight=-1.0)
