@@ -41,3 +41,21 @@ def test_masks_of_one_object_share_an_embedding(oracle_field, synth_scene):
         assert sset.pca.pca is not None and sset.pca.pca.n_fit == sum(len(s.embeddings) for s in sset.by_keyframe.values())
     finally:
         mapper.supervision = saved
+
+
+def test_association_keeps_one_mask_per_keyframe():
+    from rg_core.perception.multiview import _merge_one_per_keyframe
+
+    # Masks 0 and 2 are in keyframe 0 (an object and the group holding it), 1 and 3 in keyframe 1.
+    # Links: 0-1 (0.9), 1-2 (0.6), 2-3 (0.8), 0-3 (0.5). Connected components would make one blob;
+    # best first, 0-1 and 2-3 merge, and 1-2 / 0-3 would put two masks of one keyframe together.
+    kf = np.array([0, 1, 0, 1])
+    i, j = np.array([0, 1, 2, 0]), np.array([1, 2, 3, 3])
+    lab = _merge_one_per_keyframe(4, kf, i, j, np.array([0.9, 0.6, 0.8, 0.5]))
+    assert lab[0] == lab[1] and lab[2] == lab[3] and lab[0] != lab[2]
+    assert sorted(set(lab.tolist())) == [0, 1]
+    # A third keyframe joins a group through its best link only.
+    kf = np.array([0, 1, 2])
+    lab = _merge_one_per_keyframe(3, kf, np.array([0, 1]), np.array([1, 2]), np.array([0.7, 0.9]))
+    assert len(set(lab.tolist())) == 1
+    assert _merge_one_per_keyframe(0, np.zeros(0, int), np.zeros(0, int), np.zeros(0, int), np.zeros(0)).shape == (0,)

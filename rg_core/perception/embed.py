@@ -2,7 +2,7 @@
 
 Offline default "conse": ConSE (Norouzi et al., ICLR 2014) over packaged models: a crop's embedding
 is the probability-weighted mean of the MiniLM text embeddings of its top-k ImageNet class names
-(EfficientNet-Lite0, averaged over the crop and its mirror image), plus a colour term: the
+(EfficientNet-Lite0; optionally averaged with the mirror image), plus a colour term: the
 text embeddings of the chromatic colour words of the object's pixels, weighted by their share;
 a text's embedding is MiniLM's. Both are L2-normalised.
 """
@@ -108,13 +108,13 @@ class ConSEEmbedder(Embedder):
     crop_fill = (124, 116, 104)
 
     def __init__(self, top_k: int = 10, batch: int = 32, colour_weight: float = 0.4, min_colour: float = 0.2,
-                 mirror: bool = True):
+                 mirror: bool = False):
         """colour_weight: weight of the colour term against the unit class term (0: plain ConSE);
         min_colour: colour words covering less of the object are ignored; mirror: average the class
-        probabilities of the crop and its mirror image. Only chromatic words count: white, grey and
-        black come mostly from lighting and shading, and pulled every pale object towards one name.
-        On 3 synthetic scenes (298 object views) top-1 name accuracy among the scene's names goes from
-        28.9% to 44.3% per view, 44.3% to 57.7% averaged over each object's views."""
+        probabilities of the crop and its mirror image (twice the classifier's time for about one
+        point of accuracy: off by default). Only chromatic words count: white, grey and black come
+        mostly from lighting and shading, and pulled every pale object towards one name. Figures:
+        benchmarks/bench_perception.py (plain ConSE against this, in the same run)."""
         if not 0 <= colour_weight < 1e3 or not 0 <= min_colour < 1:
             raise ValueError(f"colour_weight must be in [0, 1e3) and min_colour in [0, 1), got {colour_weight}, {min_colour}")
         _find("efficientnet_lite_pytorch")

@@ -4,7 +4,8 @@ keyframes gets one embedding, the area-weighted mean of its per-view embeddings.
 Masks are associated through the 3D map: each mask collects the Gaussians that dominate its pixels
 (the rasterizer's `ids`), as the voxels (one map spacing wide) that hold them; two masks from
 different keyframes are the same object when those voxel sets overlap (Jaccard >= min_jaccard) and
-their physical scales agree within a factor. Voxels, not Gaussian ids: a keyframe's densification
+their physical scales agree within a factor; links are merged best first, never putting two masks
+of one keyframe in one object. Voxels, not Gaussian ids: a keyframe's densification
 adds small Gaussians that dominate its own view, on the same surface the other views see.
 """
 from __future__ import annotations
@@ -51,7 +52,6 @@ def mask_gaussians(mapper, sset, voxel_spacings: float = 1.0) -> tuple[list[tupl
 
 def associate(mapper, sset, min_jaccard: float = 0.5, max_scale_ratio: float = 1.5) -> tuple[list, np.ndarray]:
     """-> (keys [(keyframe, mask)], component label per key): masks of one object across views."""
-    from scipy.sparse.csgraph import connected_components
 
     keys, A = mask_gaussians(mapper, sset)
     if not keys:
@@ -63,12 +63,33 @@ def associate(mapper, sset, min_jaccard: float = 0.5, max_scale_ratio: float = 1
     kf = np.array([k for k, _ in keys])
     scale = np.array([float(sset.by_keyframe[k].scales[m]) for k, m in keys])
     ratio = np.maximum(scale[i], scale[j]) / np.maximum(np.minimum(scale[i], scale[j]), 1e-9)
-    link = (i != j) & (kf[i] != kf[j]) & (jac >= min_jaccard) & (ratio <= max_scale_ratio)
-    from scipy.sparse import coo_matrix
+    link = (i < j) & (kf[i] != kf[j]) & (jac >= min_jaccard) & (ratio <= max_scale_ratio)
+    return keys, _merge_one_per_keyframe(len(keys), kf, i[link], j[link], jac[link])
 
-    g = coo_matrix((np.ones(int(link.sum())), (i[link], j[link])), shape=(len(keys), len(keys)))
-    _, labels = connected_components(g, directed=False)
-    return keys, labels
+
+def _merge_one_per_keyframe(n: int, kf: np.ndarray, i: np.ndarray, j: np.ndarray, score: np.ndarray) -> np.ndarray:
+    """Greedy union-find over links, best first, that never puts two masks of one keyframe in one
+    object: chains of links through nested part / object / group masks would otherwise merge a
+    whole table-top into one component. -> label per mask [n], 0..G-1."""
+    parent = np.arange(n)
+    frames = [{int(k)} for k in kf]
+
+    def root(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for e in np.argsort(-score, kind="stable"):
+        a, b = root(int(i[e])), root(int(j[e]))
+        if a == b or frames[a] & frames[b]:
+            continue
+        if len(frames[a]) < len(frames[b]):
+            a, b = b, a
+        parent[b] = a
+        frames[a] |= frames[b]
+    roots = np.array([root(a) for a in range(n)])
+    return np.unique(roots, return_inverse=True)[1].reshape(-1)
 
 
 def aggregate_multiview(mapper, sset, min_jaccard: float = 0.5, max_scale_ratio: float = 1.5) -> dict:
