@@ -182,3 +182,31 @@ def test_relevancy_in_pca_space_matches_decompressing_first():
     assert torch.isfinite(r).all() and (r >= 0).all() and (r <= 1).all()
     with pytest.raises(ValueError, match="relevancy_pca"):
         relevancy_pca(z[..., :3], pca.components, pca.mean, q, c)
+
+
+def test_hdbscan_merges_micro_clusters_below_epsilon():
+    """Tight micro-clusters inside clusters: scikit-learn <= 1.9.1 with NumPy >= 2.4 raises a
+    TypeError in its epsilon search (scikit-learn #33219); hdbscan_labels must still return the
+    clusters that epsilon 0.01 defines: each pair of micro-clusters 0.006 apart is one group."""
+    rng = np.random.default_rng(0)
+    e = np.eye(8)
+    centres = (e[0], e[0] + 0.002, e[1], e[1] + 0.002, e[2])
+    x = np.concatenate([c + 3e-4 * rng.standard_normal((15, 8)) for c in centres])
+    truth = np.repeat([0, 0, 1, 1, 2], 15)
+    lab = hdbscan_labels(x, 10, 0.01)
+    assert (lab >= 0).all() and len(np.unique(lab)) == 3
+    for t in range(3):
+        assert len(np.unique(lab[truth == t])) == 1
+    # Without epsilon the micro-clusters stay apart.
+    assert len(np.unique(hdbscan_labels(x, 10, 0.0))) >= 4
+
+
+def test_merge_closer_than_joins_touching_clusters_and_keeps_noise():
+    from rg_core.grounding.grouping import merge_closer_than
+
+    x = np.array([[0.0], [0.05], [0.5], [0.52], [3.0], [9.0]])
+    lab = np.array([0, 0, 1, 1, 2, -1])
+    np.testing.assert_array_equal(merge_closer_than(x, lab, 0.01), [0, 0, 1, 1, 2, -1])
+    out = merge_closer_than(x, np.array([0, 1, 2, 2, -1, -1]), 0.06)   # 0 and 1 touch at 0.05
+    assert out[0] == out[1] != out[2] == out[3] and (out[4:] == -1).all()
+    np.testing.assert_array_equal(merge_closer_than(x, np.full(6, -1), 0.1), np.full(6, -1))

@@ -7,10 +7,13 @@ reports the speed-up and the change in the grounded group against clustering all
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -60,9 +63,40 @@ def hdbscan_labels(x: np.ndarray, min_cluster_size: int = 10, eps: float = 0.01,
 
     if len(x) < max(2, min_cluster_size):
         return np.full(len(x), -1, np.int64)
+    x = x.astype(np.float64)
     hd = HDBSCAN(min_cluster_size=min_cluster_size, cluster_selection_epsilon=eps, allow_single_cluster=False,
                  cluster_selection_method=method, copy=True)
-    return hd.fit_predict(x.astype(np.float64)).astype(np.int64)
+    try:
+        return hd.fit_predict(x).astype(np.int64)
+    except TypeError as e:
+        # scikit-learn <= 1.9.1 with NumPy >= 2.4 raises here when a selected cluster lies below eps
+        # (scikit-learn issue #33219): cluster without eps, then merge clusters closer than eps.
+        if eps <= 0 or "0-dimensional" not in str(e):
+            raise
+        log.warning("HDBSCAN with cluster_selection_epsilon=%g failed (%s; scikit-learn #33219): clustering "
+                    "with epsilon 0 and merging clusters closer than %g", eps, e, eps)
+        hd.set_params(cluster_selection_epsilon=0.0)
+        return merge_closer_than(x, hd.fit_predict(x).astype(np.int64), eps)
+
+
+def merge_closer_than(x: np.ndarray, labels: np.ndarray, eps: float) -> np.ndarray:
+    """Clusters (labels >= 0) with two points within `eps` of each other become one; noise stays
+    noise. x [M, D], labels [M] -> [M], clusters renumbered 0..G-1."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    inside = np.nonzero(labels >= 0)[0]
+    if not len(inside):
+        return labels.copy()
+    pairs = cKDTree(x[inside]).query_pairs(eps, output_type="ndarray")          # [P, 2]
+    a, b = labels[inside[pairs[:, 0]]], labels[inside[pairs[:, 1]]]
+    G = int(labels.max()) + 1
+    _, comp = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(G, G)), directed=False)
+    _, renum = np.unique(comp, return_inverse=True)
+    out = np.full(len(labels), -1, np.int64)
+    out[inside] = renum.reshape(-1)[labels[inside]]
+    return out
 
 
 def cluster_instances(features: torch.Tensor, max_points: int = 4000, min_cluster_size: int = 10,
