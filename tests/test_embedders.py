@@ -170,5 +170,12 @@ def test_conse_colour_term_tells_colours_apart(conse_embedder):
     blank = np.empty((32, 32, 3), np.uint8)
     blank[:] = conse.crop_fill
     torch.testing.assert_close(conse.encode_images([blank]), plain.encode_images([blank]))
+    # Centred colour words: no common "colour" direction that would favour every name holding one.
+    torch.testing.assert_close(conse.colour_emb.sum(0), torch.zeros(conse.dim), atol=1e-5, rtol=0)
+    # A colour covering less than min_colour of the object adds nothing.
+    speck = np.empty((40, 40, 3), np.uint8)
+    speck[:] = (128, 128, 128)
+    speck[:2, :2] = (20, 40, 220)
+    assert conse.colour_term([speck]).abs().max() == 0
     with pytest.raises(ValueError, match="colour_weight"):
         type(conse)(colour_weight=-1.0)
