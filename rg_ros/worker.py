@@ -219,14 +219,12 @@ class MapWorker:
             done = set(sset.by_keyframe) if sset is not None else set()
             if all(kf.index in done for kf in self.mapper.keyframes):
                 return False
-            from rg_core.perception.multiview import aggregate_multiview
-            from rg_core.perception.supervision import supervise_map
+            from rg_core.perception.supervision import supervise_map_multiview
 
             gen, emb = self._perception
             t = time.perf_counter()
             try:
-                sset = supervise_map(self.mapper, gen, emb)
-                mv = aggregate_multiview(self.mapper, sset)  # one embedding per object across keyframes (as rg eval)
+                sset, mv = supervise_map_multiview(self.mapper, gen, emb)  # as rg eval
             except Exception as exc:  # noqa: BLE001 - a perception failure must not stop mapping
                 self.log.error("supervision failed, feature training is off: %s: %s", type(exc).__name__, exc)
                 self.wcfg.features = False

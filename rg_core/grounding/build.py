@@ -25,11 +25,9 @@ def supervise(mapper: Mapper, scene, kind: str, text_encoder, progress: bool = F
     elif kind == "default":
         from ..perception.embed import make_embedder
         from ..perception.masks import make_mask_generator
-        from ..perception.multiview import aggregate_multiview
-        from ..perception.supervision import supervise_map
+        from ..perception.supervision import supervise_map_multiview
 
-        sset = supervise_map(mapper, make_mask_generator("rgbd"), make_embedder("conse"), progress=progress)
-        stats = aggregate_multiview(mapper, sset)  # one embedding per object across keyframes
+        sset, stats = supervise_map_multiview(mapper, make_mask_generator("rgbd"), make_embedder("conse"), progress)
         return {**sset.stats(), "multiview": stats, "seconds": round(time.perf_counter() - t, 3)}
     else:
         raise ValueError(f"supervision must be 'default' or 'oracle', got {kind!r}")

@@ -52,7 +52,6 @@ def mask_gaussians(mapper, sset, voxel_spacings: float = 1.0) -> tuple[list[tupl
 
 def associate(mapper, sset, min_jaccard: float = 0.5, max_scale_ratio: float = 1.5) -> tuple[list, np.ndarray]:
     """-> (keys [(keyframe, mask)], component label per key): masks of one object across views."""
-
     keys, A = mask_gaussians(mapper, sset)
     if not keys:
         return keys, np.zeros(0, np.int64)

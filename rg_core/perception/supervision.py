@@ -141,3 +141,13 @@ def supervise_map(mapper, generator: MaskGenerator, embedder: Embedder, progress
         rgb = (kf.rgb.numpy() * 255.0).round().clip(0, 255).astype(np.uint8)
         sset.add(kf.index, build_supervision(rgb, kf.depth.numpy(), kf.K, generator, embedder, rendered))
     return sset
+
+
+def supervise_map_multiview(mapper, generator: MaskGenerator, embedder: Embedder,
+                            progress: bool = False) -> tuple[SupervisionSet, dict]:
+    """supervise_map, then one embedding per object across keyframes (multiview.aggregate_multiview):
+    the supervision `rg eval` and the node train the field on. -> (set, association statistics)."""
+    from .multiview import aggregate_multiview
+
+    sset = supervise_map(mapper, generator, embedder, progress=progress)
+    return sset, aggregate_multiview(mapper, sset)
