@@ -62,6 +62,9 @@ class HubServer:
         self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
         self.httpd.daemon_threads = True
         self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}"
+        # LFS redirects go to another host name (the real hub sends them to its CDN); huggingface_hub
+        # then takes the metadata from the redirect itself instead of following it.
+        self.cdn_url = f"http://localhost:{self.httpd.server_address[1]}"
         self.thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
 
     def add(self, repo: HubRepo, alias_commits: tuple[str, ...] = ()) -> None:
@@ -155,7 +158,7 @@ class HubServer:
         if fname.endswith(LFS_SUFFIXES):
             sha = hashlib.sha256(data).hexdigest()
             pointer_etag = HubRepo.git_sha1(f"oid sha256:{sha}\nsize {len(data)}\n".encode())
-            return self._send(h, 302, {"Location": f"{self.url}/lfs/{sha}/{fname}", "X-Repo-Commit": commit,
+            return self._send(h, 302, {"Location": f"{self.cdn_url}/lfs/{sha}/{fname}", "X-Repo-Commit": commit,
                                        "X-Linked-Etag": f'"{sha}"', "X-Linked-Size": len(data),
                                        "ETag": f'"{pointer_etag}"', "Content-Length": 0}, b"", head)
         return self._body(h, fname, data, HubRepo.git_sha1(data), {"X-Repo-Commit": commit}, head)
