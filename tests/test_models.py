@@ -83,18 +83,19 @@ def test_fetch_export_verify_then_map_and_ground(hub, repos, tmp_path):
 
     # The paper preset through the whole pipeline (small budgets: this checks that it runs and reports).
     scene = tmp_path / "scene"
-    r = rg("synth", str(scene), "--views", "6", "--size", "160x120", "--seed", "3", "--objects", "3", "--workers", "1",
+    # 12 views: at least 8 keyframe masks (one per keyframe from this random SAM) fit the PCA the field needs.
+    r = rg("synth", str(scene), "--views", "12", "--size", "160x120", "--seed", "3", "--objects", "3", "--workers", "1",
            "--json")
     assert r.returncode == 0, r.stderr
     cfg = tmp_path / "rg.yaml"
-    cfg.write_text("map:\n  iters_per_keyframe: 3\n  final_iters: 0\nmodels:\n  sam_points_per_side: 4\n"
+    cfg.write_text("map:\n  iters_per_keyframe: 3\n  final_iters: 0\nmodels:\n  sam_points_per_side: 3\n"
                    "  sam_points_per_batch: 16\n  threads: 1\n")
     r = rg("--config", str(cfg), "map", str(scene), "--out", str(tmp_path / "m.rgmap"), "--supervise", "--train-field", "2",
            "--preset", "paper", "--quiet", "--json", env=offline(cache))
     assert r.returncode == 0, r.stderr
     m = json.loads(r.stdout)
     assert m["supervision"]["preset"] == "paper" and m["field"]["steps"] > 0
-    assert m["supervision"]["masks"] > 0, m["supervision"]
+    assert m["supervision"]["masks_per_keyframe"] > 0 and m["supervision"]["pca"]["fitted_on"] >= 8, m["supervision"]
     r = rg("--config", str(cfg), "ground", str(tmp_path / "m.rgmap"), "a red box", "--preset", "paper", "--backend",
            "text", "--name", "red box", "--json", env=offline(cache))
     assert r.returncode == 0, r.stderr
