@@ -101,6 +101,21 @@ def test_fetch_export_verify_then_map_and_ground(hub, repos, tmp_path):
     assert r.returncode == 0, r.stderr
     g = json.loads(r.stdout)
     assert g["query"] == "a red box" and isinstance(g["success"], bool) and g["message"]
+    # The node's worker with the preset's perception grounds in the same space (CLIP text, 24-d).
+    from rg_core.config import load_config
+    from rg_core.map.store import load_map
+    from rg_core.models import make_perception
+    from rg_ros.worker import MapWorker, WorkerConfig
+
+    wc = load_config(cfg)
+    wc.models.dir, wc.reason.backend = str(cache), "text"
+    worker = MapWorker(wc, WorkerConfig(), load_map(tmp_path / "m.rgmap"),
+                       perception_loader=lambda: make_perception("paper", wc.models))
+    worker._load_perception_thread()
+    assert worker.perception_state == "ready" and worker._perception[1].name == "onnx_clip"
+    res = worker.ground("a red box")
+    assert res.query == "a red box" and res.message and "dimension" not in res.message.lower(), res.message
+    assert worker._grounder.encode(["a red box"]).shape == (1, 24)
     # Without --backend the paper preset reasons with LLaVA, which was not fetched: the error says how to get it.
     r = rg("--config", str(cfg), "ground", str(tmp_path / "m.rgmap"), "something to drink from", "--preset", "paper",
            "--json", env=offline(cache))
