@@ -216,6 +216,14 @@ def cmd_eval(args, cfg) -> dict:
     from .io.captures import read_scene
     from .map.store import load_map
 
+    if args.preset:
+        cfg.models.preset = args.preset
+    from .models import ModelMissingError, apply_reasoner
+
+    try:
+        apply_reasoner(cfg.models.preset, cfg)
+    except ModelMissingError as exc:
+        print(f"rg eval: {exc}; implicit queries use reason.backend {cfg.reason.backend!r}", file=sys.stderr)
     scene = read_scene(args.scene)
     if not scene.queries or not scene.objects:
         raise ValueError(f"{args.scene}: rg eval needs queries.json and objects.json (a ReasoningGD scene)")
@@ -305,6 +313,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--field-seconds", type=float, help="feature-training budget (default: config field.seconds)")
     p.add_argument("--implicit", type=int, default=1, help="implicit queries per object (default 1)")
     p.add_argument("--ablation", action="store_true", help="relevancy only / + reasoning / + grouping table")
+    p.add_argument("--preset", help="models of the default supervision: offline, paper, paper_cpu (default: config)")
     common(p)
     p.set_defaults(func=cmd_eval)
 

@@ -101,6 +101,11 @@ def test_fetch_export_verify_then_map_and_ground(hub, repos, tmp_path):
     assert r.returncode == 0, r.stderr
     g = json.loads(r.stdout)
     assert g["query"] == "a red box" and isinstance(g["success"], bool) and g["message"]
+    # rg eval on that map with the preset: queries embedded by the preset's CLIP text tower (LLaVA absent: warned).
+    r = rg("--config", str(cfg), "eval", str(scene), "--map", str(tmp_path / "m.rgmap"), "--preset", "paper",
+           "--field-seconds", "0", "--implicit", "0", "--quiet", "--json", env=offline(cache))
+    assert r.returncode == 0, r.stderr
+    assert "rg models fetch llava-1.5-7b" in r.stderr and json.loads(r.stdout)["eval"]
     # The node's worker with the preset's perception grounds in the same space (CLIP text, 24-d).
     from rg_core.config import load_config
     from rg_core.map.store import load_map
