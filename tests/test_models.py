@@ -149,6 +149,11 @@ def test_interrupted_download_resumes(repos, tmp_path):
     assert 0 < start <= len(data) // 2  # ... then a Range request for the rest, not the whole file again
     assert (tmp_path / CLIP / "open_clip_model.safetensors").read_bytes() == data
     assert json.loads(r.stdout)[CLIP]["files"]["open_clip_model.safetensors"]["sha256"] == sha
+    # A second fetch finds every file intact (hashes match the hub's) and downloads nothing.
+    with HubServer() as hub2:
+        hub2.add(HubRepo(get_spec(CLIP).repo_id, files))
+        assert rg("models", "fetch", CLIP, "--json", env=online(hub2, tmp_path)).returncode == 0
+    assert [p for m, p, _ in hub2.log if m == "GET" and ("/resolve/" in p or p.startswith("/lfs/"))] == [], hub2.log
 
 
 def test_corrupted_file_is_caught_by_checksum(hub, repos, tmp_path):
@@ -181,6 +186,14 @@ def test_offline_with_empty_cache_names_the_command(tmp_path):
            "--json", env=offline(tmp_path))
     err = json.loads(r.stdout)["error"]
     assert r.returncode == 2 and f"rg models fetch {SAM}" in err and f"rg models export {SAM}" in err, err
+    # Files placed by hand (no fetch manifest) are accepted offline and hashed.
+    d = tmp_path / "slimsam-77"
+    d.mkdir()
+    for f in ("config.json", "model.safetensors", "preprocessor_config.json"):
+        (d / f).write_bytes(f.encode())
+    r = rg("models", "fetch", "slimsam-77", "--json", env=offline(tmp_path))
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["slimsam-77"]["files"]["config.json"]["sha256"] == hashlib.sha256(b"config.json").hexdigest()
     r = rg("models", "fetch", "no-such-model", "--json", env=offline(tmp_path))
     assert r.returncode == 2 and "unknown model 'no-such-model'" in json.loads(r.stdout)["error"]
 

@@ -89,7 +89,16 @@ def fetch(name: str, root: Path | None = None, progress: bool = True) -> dict:
     old = read_manifest(name, root) or {}
     if offline():
         if not old.get("files"):
-            raise _missing_offline(name, local, "the model")
+            present = [local / (e if isinstance(e, str) else next((c for c in e if (local / c).is_file()), e[0]))
+                       for e in spec.files]
+            if not all(p.is_file() for p in present):
+                raise _missing_offline(name, local, "the model")
+            # Files placed by hand (no manifest): hash them now; nothing to compare with offline.
+            files = {p.name: {"sha256": file_hashes(p)[0], "size": p.stat().st_size, "expected": None} for p in present}
+            manifest = {"name": name, "repo_id": spec.repo_id, "revision": spec.revision, "commit": None,
+                        "endpoint": None, "files": files, "note": "placed by hand: not checked against the hub"}
+            (local / MANIFEST).write_text(json.dumps(manifest, indent=1))
+            return manifest
         for fname, rec in old["files"].items():
             if not (local / fname).is_file():
                 raise _missing_offline(name, local, fname)
@@ -97,6 +106,10 @@ def fetch(name: str, root: Path | None = None, progress: bool = True) -> dict:
         return old
     ep = endpoint()
     local.mkdir(parents=True, exist_ok=True)
+    if not progress:
+        from huggingface_hub.utils import disable_progress_bars
+
+        disable_progress_bars()
     t0 = time.perf_counter()
     files: dict[str, dict] = {}
     commit = None
