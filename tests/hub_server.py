@@ -7,7 +7,8 @@ It answers what huggingface_hub asks of the real hub (as far as hf_hub_download 
   its CDN. A missing file answers 404 with X-Error-Code: EntryNotFound; a missing repository
   RepoNotFound.
 - GET with Range: bytes=N- answers 206 with Content-Range (resumed downloads).
-- /api/models/{repo}/revision/{rev}: id, sha and siblings (what snapshot_download lists).
+- /api/models/{repo}/revision/{rev} (id, sha, siblings) and /api/models/{repo}/tree/{rev} (files with
+  their git and LFS hashes): what snapshot_download lists.
 Faults for tests: `drop_once` (file names whose first full GET sends half the body, then closes the
 connection), `corrupt` (file names served with one byte flipped while the headers keep the true hash).
 Every request is logged as (method, path, Range header).
@@ -141,6 +142,18 @@ class HubServer:
                 return self._error(h, 404, "RepoNotFound", "Repository not found", head)
             body = json.dumps({"id": repo.repo_id, "sha": repo.commit, "siblings": [{"rfilename": f} for f in repo.files]}).encode()
             return self._send(h, 200, {"Content-Type": "application/json", "X-Repo-Commit": repo.commit}, body, head)
+        m = re.fullmatch(r"/api/models/(.+?)/tree/([^/]+)", path)
+        if m:
+            repo = self.repos.get(m.group(1))
+            if repo is None:
+                return self._error(h, 404, "RepoNotFound", "Repository not found", head)
+            entries = []
+            for f, data in repo.files.items():
+                e = {"type": "file", "path": f, "size": len(data), "oid": HubRepo.git_sha1(data)}
+                if f.endswith(LFS_SUFFIXES):
+                    e["lfs"] = {"oid": hashlib.sha256(data).hexdigest(), "size": len(data), "pointerSize": 134}
+                entries.append(e)
+            return self._send(h, 200, {"Content-Type": "application/json"}, json.dumps(entries).encode(), head)
         m = re.fullmatch(r"/(.+?)/resolve/([^/]+)/(.+)", path)
         if not m:
             return self._error(h, 404, "RepoNotFound", "not a hub path", head)

@@ -218,3 +218,18 @@ def test_openclip_layout_round_trip():
         hf_config({"model_cfg": {"embed_dim": 8}})
     with pytest.raises(ModelError, match="hf_model_name"):
         hf_config({"model_cfg": {**oc["model_cfg"], "text_cfg": {**oc["model_cfg"]["text_cfg"], "hf_model_name": "x"}}})
+
+
+def test_hub_server_serves_snapshot_download(tmp_path):
+    """The loopback server is hub-shaped beyond what `rg models fetch` uses: huggingface_hub's
+    snapshot_download (revision API, tree listing, resolve + LFS redirect) gets every file intact."""
+    files = {"config.json": b'{"a": 1}', "model.safetensors": bytes(range(256)) * 40, "README.md": b"hi\n"}
+    with HubServer() as hub:
+        hub.add(HubRepo("facebook/sam-vit-huge", files))
+        code = ("import sys; from huggingface_hub import snapshot_download; "
+                "print(snapshot_download('facebook/sam-vit-huge', local_dir=sys.argv[1], endpoint=sys.argv[2]))")
+        r = subprocess.run([sys.executable, "-c", code, str(tmp_path), hub.url], capture_output=True, text=True,
+                           env={**os.environ, "HF_HUB_OFFLINE": "0"}, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert {f: (tmp_path / f).read_bytes() for f in files} == files
+    assert any(p.startswith("/api/models/facebook/sam-vit-huge/tree/") for _, p, _ in hub.log)
