@@ -176,6 +176,25 @@ def test_corrupted_file_is_caught_by_checksum(hub, repos, tmp_path):
     assert p.read_bytes() == repos[CLIP]["open_clip_model.safetensors"]
 
 
+def test_alternative_weights_file_is_fetched_and_exported(repos, tmp_path):
+    """A repository holding only open_clip_pytorch_model.bin (the older name) serves the same model."""
+    import io
+
+    from safetensors.torch import load
+
+    files = {k: v for k, v in repos[CLIP].items() if k != "open_clip_model.safetensors"}
+    buf = io.BytesIO()
+    torch.save(load(repos[CLIP]["open_clip_model.safetensors"]), buf)
+    files["open_clip_pytorch_model.bin"] = buf.getvalue()
+    with HubServer() as hub:
+        hub.add(HubRepo(get_spec(CLIP).repo_id, files))
+        r = rg("models", "fetch", CLIP, "--json", env=online(hub, tmp_path))
+    assert r.returncode == 0, r.stderr
+    assert set(json.loads(r.stdout)[CLIP]["files"]) == {"open_clip_config.json", "open_clip_pytorch_model.bin", "tokenizer.json"}
+    r = rg("models", "export", CLIP, "--json", env=offline(tmp_path))  # loads the .bin (torch.load, weights only)
+    assert r.returncode == 0 and json.loads(r.stdout)[CLIP]["dim"] == 24, r.stderr
+
+
 def test_offline_with_empty_cache_names_the_command(tmp_path):
     r = rg("models", "fetch", SAM, "--json", env=offline(tmp_path))
     assert r.returncode == 2
