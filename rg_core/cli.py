@@ -131,15 +131,18 @@ def cmd_map(args, cfg) -> dict:
     over = {k: v for k, v in (("max_gaussians", args.max_gaussians), ("iters_per_keyframe", args.iters_per_keyframe),
                               ("width", args.width)) if v is not None}
     mcfg = dataclasses.replace(cfg.map, **over)
+    preset = args.preset or cfg.models.preset
+    if args.supervise:  # the preset's models must be there before the (long) mapping starts
+        from .models import make_perception
+
+        generator, embedder = make_perception(preset, cfg.models)
     mapper, report = map_scene(args.scene, mcfg, progress=not args.quiet)
     if args.supervise:
-        from .perception.embed import make_embedder
-        from .perception.masks import make_mask_generator
         from .perception.supervision import supervise_map
 
         t = time.perf_counter()
-        sset = supervise_map(mapper, make_mask_generator("rgbd"), make_embedder("conse"), progress=not args.quiet)
-        report["supervision"] = {**sset.stats(), "seconds_total": round(time.perf_counter() - t, 3)}
+        sset = supervise_map(mapper, generator, embedder, progress=not args.quiet)
+        report["supervision"] = {**sset.stats(), "seconds_total": round(time.perf_counter() - t, 3), "preset": preset}
         if args.train_field:
             from .field import FeatureField
 
@@ -177,12 +180,23 @@ def cmd_ground(args, cfg) -> dict:
     from .grounding.pipeline import Grounder
     from .map.store import load_map
 
+    from .models import apply_reasoner, make_text_encoder
+
+    preset = args.preset or cfg.models.preset
     if args.backend:
         cfg.reason.backend = args.backend
+    else:
+        apply_reasoner(preset, cfg)
+    text = make_text_encoder(preset, cfg.models)  # queries in the space of the map's embeddings
     mapper = load_map(args.map)
     if getattr(mapper, "field", None) is None:
         raise ValueError(f"{args.map}: the map has no feature field; build it with rg map --supervise --train-field S")
-    grounder = Grounder(mapper, mapper.field, cfg, scene_names=args.name or [])
+    sset = mapper.supervision
+    embs = [s.embeddings for s in sset.by_keyframe.values() if len(s.embeddings)] if sset is not None else []
+    if text is not None and embs and text(["x"]).shape[-1] != embs[0].shape[-1]:
+        raise ValueError(f"{args.map}: the map's embeddings are {embs[0].shape[-1]}-d, preset {preset!r} embeds "
+                         f"queries in {text(['x']).shape[-1]}-d: ground with the preset the map was built with")
+    grounder = Grounder(mapper, mapper.field, cfg, text_encoder=text, scene_names=args.name or [])
     res = grounder.ground(args.query, mode=args.mode, max_results=args.max_results)
     out = res.to_json()
     if res.success and (args.out or args.view is not None or args.pose):
@@ -202,6 +216,14 @@ def cmd_eval(args, cfg) -> dict:
     from .io.captures import read_scene
     from .map.store import load_map
 
+    if args.preset:
+        cfg.models.preset = args.preset
+    from .models import ModelMissingError, apply_reasoner
+
+    try:
+        apply_reasoner(cfg.models.preset, cfg)
+    except ModelMissingError as exc:
+        print(f"rg eval: {exc}; implicit queries use reason.backend {cfg.reason.backend!r}", file=sys.stderr)
     scene = read_scene(args.scene)
     if not scene.queries or not scene.objects:
         raise ValueError(f"{args.scene}: rg eval needs queries.json and objects.json (a ReasoningGD scene)")
@@ -214,6 +236,25 @@ def cmd_eval(args, cfg) -> dict:
     report["eval"] = evaluate_queries(grounder, scene, args.implicit, progress=not args.quiet, ablation=args.ablation)
     report["supervision_kind"] = args.supervision
     return report
+
+
+def cmd_models(args, cfg) -> dict:
+    from . import models
+
+    root = Path(cfg.models.dir).expanduser() if cfg.models.dir else None
+    if args.action == "list":
+        return {"dir": str(root or models.models_dir()), "models": models.list_models(root),
+                "presets": {p.name: {"sam": p.sam, "clip": p.clip, "lvlm": p.lvlm, "description": p.description}
+                            for p in models.PRESETS.values()}}
+    if not args.names:
+        raise ValueError(f"rg models {args.action}: name at least one model ({', '.join(models.MODELS)})")
+    from .models.export import export
+    from .models.fetch import fetch
+    from .models.verify import verify
+
+    run = {"fetch": lambda n: fetch(n, root, progress=not args.quiet), "export": lambda n: export(n, root),
+           "verify": lambda n: verify(n, root)}[args.action]
+    return {n: run(n) for n in args.names}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -246,6 +287,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also compute masks, scales, embeddings and PCA per keyframe (stored in the map)")
     p.add_argument("--train-field", type=float, metavar="SECONDS",
                    help="then train the feature field for this many seconds (needs --supervise)")
+    p.add_argument("--preset", help="models of the supervision: offline, paper, paper_cpu (default: config models.preset)")
     common(p)
     p.set_defaults(func=cmd_map)
 
@@ -260,6 +302,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--backend", help="reasoning backend (text, llama_cpp, openai)")
     p.add_argument("--name", action="append", help="an object name the scene may hold (repeatable)")
     p.add_argument("--out", help="folder for PNGs: reference view, relevancy, amodal and visible masks")
+    p.add_argument("--preset", help="offline, paper, paper_cpu: the map's embedder (+ LVLM unless --backend)")
     common(p)
     p.set_defaults(func=cmd_ground)
 
@@ -270,6 +313,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--field-seconds", type=float, help="feature-training budget (default: config field.seconds)")
     p.add_argument("--implicit", type=int, default=1, help="implicit queries per object (default 1)")
     p.add_argument("--ablation", action="store_true", help="relevancy only / + reasoning / + grouping table")
+    p.add_argument("--preset", help="models of the default supervision: offline, paper, paper_cpu (default: config)")
     common(p)
     p.set_defaults(func=cmd_eval)
 
@@ -285,6 +329,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sizes", help="image sizes of the scaling, e.g. 160x120,320x240,640x480")
     common(p)
     p.set_defaults(func=cmd_report)
+
+    p = sub.add_parser("models", help="list, fetch, export to ONNX and verify the paper's models")
+    p.add_argument("action", choices=("list", "fetch", "export", "verify"))
+    p.add_argument("names", nargs="*", help="registry names (rg models list)")
+    common(p)
+    p.set_defaults(func=cmd_models)
 
     p = sub.add_parser("demo", help="the main job on an embedded default scene")
     p.add_argument("--out", default="rg_demo", help="output folder (default: ./rg_demo)")

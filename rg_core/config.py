@@ -262,6 +262,23 @@ class ReasonConfig:
 
 
 @dataclass
+class ModelsConfig:
+    """Named model configurations and the model cache (`rg models ...`, `--preset`; rg_core/models)."""
+
+    preset: str = "offline"
+    """"offline" (RGB-D masks, ConSE, text reasoner: no download), "paper" (SAM ViT-H + OpenCLIP
+    ViT-B/16 + LLaVA 1.5 via llama.cpp) or "paper_cpu" (SlimSAM-77 + OpenCLIP + SmolVLM-256M)."""
+    dir: str = ""
+    """Model cache; empty = $RG_MODELS_DIR or ~/.cache/reasongrounder/models."""
+    sam_points_per_side: int = 32
+    """SAM automatic masks: point grid per side (SamAutomaticMaskGenerator's default)."""
+    sam_points_per_batch: int = 64
+    """SAM prompts per decoder call."""
+    threads: int = 0
+    """onnxruntime intra-op threads of the exported models (0 = its default)."""
+
+
+@dataclass
 class RGConfig:
     """Top level of a ReasonGrounder configuration file."""
 
@@ -271,6 +288,7 @@ class RGConfig:
     field: FieldConfig = field(default_factory=FieldConfig)
     ground: GroundConfig = dataclasses.field(default_factory=GroundConfig)
     reason: ReasonConfig = dataclasses.field(default_factory=ReasonConfig)
+    models: ModelsConfig = dataclasses.field(default_factory=ModelsConfig)
 
 
 def _type_name(tp: Any) -> str:

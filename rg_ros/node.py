@@ -77,6 +77,9 @@ class NodeParams:
     """Mask generator backend of the supervision."""
     embedder: str = "conse"
     """Image-text embedder backend of the supervision."""
+    preset: str = ""
+    """Named models (rg_core/models): offline, paper, paper_cpu; overrides mask_generator, embedder and the
+    reasoner ("" = those parameters). Missing models are logged with the `rg models ...` command to run."""
     train_slice: float = 0.5
     """Seconds of field training per idle slice."""
     train_seconds_max: float = 30.0
@@ -202,7 +205,17 @@ class GroundingNode(Node):
         wcfg = WorkerConfig(queue_size=p.frame_queue_size, features=p.features, mask_generator=p.mask_generator,
                             embedder=p.embedder, train_slice=p.train_slice, train_seconds_max=p.train_seconds_max,
                             refine_iters=p.refine_iters)
-        self.worker = MapWorker(cfg, wcfg, mapper, logger=_RosLogAdapter(log))
+        loader = None
+        if p.preset:
+            from rg_core.models import ModelError, apply_reasoner, make_perception
+
+            try:
+                apply_reasoner(p.preset, cfg)
+            except ModelError as exc:  # the node runs; implicit queries use the text reasoner
+                log.error(f"{exc}; implicit queries use the text reasoner")
+            wcfg.mask_generator = wcfg.embedder = f"preset {p.preset}"
+            loader = lambda: make_perception(p.preset, cfg.models)  # noqa: E731 - errors name the fetch command
+        self.worker = MapWorker(cfg, wcfg, mapper, logger=_RosLogAdapter(log), perception_loader=loader)
 
         # -------------------------------------------------------------- state
         self._state_lock = threading.Lock()

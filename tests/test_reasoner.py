@@ -8,6 +8,7 @@ import socket
 import subprocess
 import sys
 import time
+import urllib.error
 import urllib.request
 
 import numpy as np
@@ -200,6 +201,77 @@ def test_openai_client_against_real_server(llama_server, text):
     print("openai + image:", r)  # SmolLM2 is text-only: the server may refuse the image -> fallback
     _well_formed(r, ["apple", "coffee mug"])
     assert rs.reason("the coffee mug", NAMES).target == "coffee mug"  # explicit: no model call
+
+
+@pytest.fixture
+def recording_proxy(llama_server):
+    """A loopback HTTP proxy in front of the real llama.cpp server: records each request body the client
+    sends (what goes over the wire) and passes the server's answer back unchanged."""
+    import http.server
+    import json
+    import threading
+
+    bodies = []
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def log_message(self, *a):
+            pass
+
+        def do_POST(self):
+            raw = self.rfile.read(int(self.headers["Content-Length"]))
+            bodies.append(json.loads(raw))
+            req = urllib.request.Request(llama_server + self.path.removeprefix("/v1"), raw,
+                                         {"Content-Type": "application/json"}, method="POST")
+            try:
+                with urllib.request.urlopen(req, timeout=300) as resp:
+                    status, out = resp.status, resp.read()
+            except urllib.error.HTTPError as exc:
+                status, out = exc.code, exc.read()
+            self.send_response(status)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(out)))
+            self.end_headers()
+            self.wfile.write(out)
+
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    th = threading.Thread(target=srv.serve_forever, daemon=True)
+    th.start()
+    try:
+        yield f"http://127.0.0.1:{srv.server_address[1]}/v1", bodies
+    finally:
+        srv.shutdown()
+        srv.server_close()
+
+
+def test_openai_sends_reference_view_and_asks_for_strict_json(recording_proxy, text):
+    """What goes over the wire to the real server: the reference view as a PNG data URL (decoding to the
+    very pixels given), the JSON response format, the vocabulary in the prompt; the reply is parsed as
+    strict JSON (a target from the vocabulary) or the text fallback says why."""
+    import base64
+
+    import cv2
+
+    url, bodies = recording_proxy
+    img = np.zeros((6, 10, 3), np.uint8)
+    img[:, :5] = (255, 0, 0)
+    img[2, 7] = (0, 200, 30)
+    vocab = ["apple", "coffee mug"]
+    r = OpenAIChatReasoner(base_url=url, model="smollm2", timeout_s=120, accepts_images=True,
+                           fallback=text).reason("a round red fruit", vocab, image=img)
+    _well_formed(r, vocab)
+    body = bodies[-1]
+    assert body["response_format"] == {"type": "json_object"} and body["temperature"] == 0.0
+    assert '"coffee mug"' in body["messages"][0]["content"] and "object_name" in body["messages"][0]["content"]
+    parts = body["messages"][1]["content"]
+    images = [p["image_url"]["url"] for p in parts if p.get("type") == "image_url"]
+    assert len(images) == 1 and images[0].startswith("data:image/png;base64,")
+    png = np.frombuffer(base64.b64decode(images[0].split(",", 1)[1]), np.uint8)
+    assert np.array_equal(cv2.imdecode(png, cv2.IMREAD_COLOR)[:, :, ::-1], img)  # lossless, RGB order kept
+    assert any(p.get("type") == "text" and "a round red fruit" in p["text"] for p in parts)
+    # Without image support the same query goes as plain text, no image part.
+    OpenAIChatReasoner(base_url=url, model="smollm2", timeout_s=120, fallback=text).reason("a round red fruit", vocab,
+                                                                                            image=img)
+    assert isinstance(bodies[-1]["messages"][1]["content"], str)
 
 
 def test_openai_timeout_falls_back(llama_server, text):

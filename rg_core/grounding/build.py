@@ -12,22 +12,25 @@ from ..map.run import stream_frames
 from .pipeline import Grounder
 
 
-def supervise(mapper: Mapper, scene, kind: str, text_encoder, progress: bool = False) -> dict:
-    """`default`: the offline mask generator and ConSE embedder; `oracle`: ground-truth visible masks
-    and object names (measures the 3D part alone). Returns per-stage statistics."""
+def supervise(mapper: Mapper, scene, kind: str, text_encoder, progress: bool = False,
+              cfg: RGConfig | None = None) -> dict:
+    """`default`: the mask generator and embedder of cfg.models.preset (offline: RGB-D masks and ConSE);
+    `oracle`: ground-truth visible masks and object names (measures the 3D part alone). Returns
+    per-stage statistics."""
     t = time.perf_counter()
+    cfg = cfg or RGConfig()  # its models section names the preset of the default supervision
     if kind == "oracle":
         from ..field.oracle import oracle_supervision
 
         if not scene.objects:
             raise ValueError(f"{scene.root}: oracle supervision needs ground-truth objects (objects.json)")
         sset = oracle_supervision(mapper, scene.train, scene.objects, text_encoder)
-    elif kind == "default":
-        from ..perception.embed import make_embedder
-        from ..perception.masks import make_mask_generator
+    elif kind == "default":  # the configured preset's models ("offline": RGB-D masks + ConSE)
+        from ..models import make_perception
         from ..perception.supervision import supervise_map_multiview
 
-        sset, stats = supervise_map_multiview(mapper, make_mask_generator("rgbd"), make_embedder("conse"), progress)
+        sset, stats = supervise_map_multiview(mapper, *make_perception(cfg.models.preset, cfg.models),
+                                              progress)
         return {**sset.stats(), "multiview": stats, "seconds": round(time.perf_counter() - t, 3)}
     else:
         raise ValueError(f"supervision must be 'default' or 'oracle', got {kind!r}")
@@ -48,9 +51,11 @@ def build_grounder(scene, cfg: RGConfig, supervision: str = "default", field_sec
         mapper.refine(cfg.map.final_iters)
         report["map"] = mapper.stats()
     report["seconds_map"] = round(time.perf_counter() - t, 3)
-    text = MiniLMText()
+    from ..models import make_text_encoder
+
+    text = make_text_encoder(cfg.models.preset, cfg.models) or MiniLMText()  # the preset's embedding space
     if mapper.supervision is None or supervision == "oracle":
-        report["supervision"] = supervise(mapper, scene, supervision, text, progress)
+        report["supervision"] = supervise(mapper, scene, supervision, text, progress, cfg)
     field = getattr(mapper, "field", None) or FeatureField(mapper, cfg.field)
     secs = cfg.field.seconds if field_seconds is None else field_seconds
     if secs > 0:
