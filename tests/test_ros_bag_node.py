@@ -1,0 +1,253 @@
+"""The node on real-robot input (issue 16): `rg-node` with poses from TF and compressed RealSense
+topics, fed by `rg-replay BAG` on loopback, both as subprocesses; this process probes through rclpy.
+
+The bag is written from the first 20 frames of box_toys_50 (JPEG colour, compressedDepth,
+CameraInfo, /tf map -> odom -> base_link, /tf_static base_link -> camera_link -> optical frame).
+The node builds the same map as the headless mapper on the same bag (Gaussian count within 5 %),
+answers /ground, drops and counts frames whose TF is missing (10 %), and survives bad input.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from test_ros_node import start, stop, wait_for, write_params
+
+pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs is not installed: scripts/bootstrap.sh builds it from msg_tf2/")
+pytest.importorskip("rosbags")
+
+import rclpy  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from geometry_msgs.msg import TransformStamped  # noqa: E402
+from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
+from rg_interfaces.srv import Ground  # noqa: E402
+from sensor_msgs.msg import CameraInfo, CompressedImage  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+from tf2_msgs.msg import TFMessage  # noqa: E402
+
+from conftest import need_rgbd  # noqa: E402
+from rg_core.io.rosbag_write import COLOR_TOPIC, DEPTH_TOPIC, INFO_TOPIC, OPTICAL_FRAME, write_scene_bag  # noqa: E402
+from rg_ros import convert as cv  # noqa: E402
+
+N = 20
+MISSING = [5, 15]   # 10 % of the frames lose their odom -> base_link sample
+WIDTH, ITERS = 160, 3
+
+
+class BagHarness:
+    def __init__(self, tmp):
+        import json
+
+        from rg_core.io.captures import read_scene
+
+        self.tmp = tmp
+        self.frames = read_scene(need_rgbd("box_toys_50"), test_every=0).train[:N]
+        self.bag = write_scene_bag(self.frames, tmp / "good")
+        self.gap_bag = write_scene_bag(self.frames, tmp / "gaps", stamp0=1_700_001_000.0, tf_missing=MISSING)
+        self.log = tmp / "node.log"
+        params = write_params(tmp / "n.yaml", "rg_node", color_topic=COLOR_TOPIC, depth_topic=DEPTH_TOPIC,
+                              camera_info_topic=INFO_TOPIC, map_width=WIDTH, iters_per_keyframe=ITERS,
+                              torch_threads=1, frame_queue_size=64, features=True, train_slice=0.5,
+                              train_seconds_max=2.0, status_period=0.3, tf_max_gap=0.12, map_cloud_period=0.0,
+                              mask_rate=0.0)
+        self.node_p = start(["node", "--params", str(params)], self.log)
+        self.json = json
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx)
+        self.node = rclpy.create_node("rg_bag_probe", context=self.ctx)
+        self.status: dict = {}
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_status, 10)
+        self.ground = self.node.create_client(Ground, "/ground")
+        self.reset = self.node.create_client(Trigger, "/rg_node/reset")
+        q = qos_profile_sensor_data
+        self.pub_color = self.node.create_publisher(CompressedImage, COLOR_TOPIC, q)
+        self.pub_depth = self.node.create_publisher(CompressedImage, DEPTH_TOPIC, q)
+        self.pub_info = self.node.create_publisher(CameraInfo, INFO_TOPIC, q)
+        self.pub_tf = self.node.create_publisher(TFMessage, "/tf", QoSProfile(depth=100,
+                                                                               reliability=ReliabilityPolicy.RELIABLE))
+        self.executor = MultiThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        import threading
+
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+
+    def _on_status(self, msg):
+        for s in msg.status:
+            if s.name.split(":")[0] != "/rg_node":
+                continue
+            vals = {}
+            for kv in s.values:
+                try:
+                    vals[kv.key] = self.json.loads(kv.value)
+                except ValueError:
+                    vals[kv.key] = kv.value
+            vals["_t"], vals["_message"] = time.monotonic(), s.message
+            self.status = vals
+
+    def fresh(self, timeout=15.0):
+        t = time.monotonic()
+        return wait_for(lambda: self.status if self.status.get("_t", 0) > t else None, timeout, "a fresh status")
+
+    def call(self, client, req, timeout=120.0):
+        assert client.wait_for_service(timeout_sec=30), f"{client.srv_name} not discovered"
+        res = client.call(req, timeout_sec=timeout)
+        assert res is not None, f"{client.srv_name}: no reply within {timeout} s"
+        return res
+
+    def replay(self, bag, *extra):
+        return subprocess.run([sys.executable, "-m", "rg_ros.tools", "replay", str(bag), *extra],
+                              env=dict(os.environ), capture_output=True, text=True, timeout=120)
+
+    def node_log(self):
+        return self.log.read_text(errors="replace")
+
+    def close(self):
+        self.executor.shutdown(timeout_sec=5)
+        self.node.destroy_node()
+        self.ctx.try_shutdown()
+        self.thread.join(timeout=5)
+        stop(self.node_p)
+
+
+@pytest.fixture(scope="module")
+def h(tmp_path_factory):
+    harness = BagHarness(tmp_path_factory.mktemp("rgbag"))
+    try:
+        yield harness
+    finally:
+        harness.close()
+
+
+def headless_gaussians(bag) -> int:
+    """The same frames through the library's mapper, as `rg map` streams them (no final refinement)."""
+    from rg_core.config import load_config
+    from rg_core.io.rosbag import BagOptions, read_bag
+    from rg_core.map.mapper import Mapper
+    from rg_core.map.run import stream_frames
+
+    scene = read_bag(bag, BagOptions(tf_max_gap=0.12), test_every=0)
+    mapper = Mapper(dataclasses.replace(load_config(None).map, width=WIDTH, iters_per_keyframe=ITERS))
+    stream_frames(mapper, scene.train, progress=False)
+    return len(mapper.gaussians)
+
+
+def test_replayed_bag_builds_the_same_map_and_answers_ground(h):
+    rep = h.replay(h.bag, "--rate", "1")
+    assert rep.returncode == 0, rep.stdout + rep.stderr
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([h.bag]) as r:
+        n_msgs = r.message_count
+    assert f"published {n_msgs} messages" in rep.stdout + rep.stderr, rep.stdout + rep.stderr
+    st = wait_for(lambda: h.status if h.status.get("frames", 0) >= N and h.status.get("queue") == 0 else None,
+                  240, lambda: f"{N} frames mapped (status {h.status})")
+    assert st["tf_dropped"] == 0 and st["dropped"] == 0 and st["rejected"] == 0, st
+    assert st["pose_source"] == "tf" and set(st["input_errors"]) == set(), st["input_errors"]
+    ref = headless_gaussians(h.bag)
+    print(f"node {st['gaussians']} Gaussians, headless {ref} ({st['gaussians'] / ref - 1:+.2%})")
+    assert abs(st["gaussians"] - ref) <= 0.05 * ref, (st["gaussians"], ref)
+    wait_for(lambda: h.status.get("field_steps", 0) > 0, 300, lambda: f"field training (status {h.status})")
+    res = h.call(h.ground, Ground.Request(query="a box"))
+    assert res.success, res.message
+    assert len(res.objects) >= 1 and res.cloud.width > 0 and res.cloud.header.frame_id == "map"
+
+
+def test_frames_without_tf_are_dropped_and_counted(h):
+    res = h.call(h.reset, Trigger.Request())
+    assert res.success
+    rep = h.replay(h.gap_bag, "--rate", "1")
+    assert rep.returncode == 0, rep.stdout + rep.stderr
+    st = wait_for(lambda: h.status if h.status.get("frames", 0) + h.status.get("tf_dropped", 0) >= N
+                  and h.status.get("queue") == 0 else None, 240, lambda: f"the gap bag mapped (status {h.status})")
+    assert st["tf_dropped"] == len(MISSING) and st["input_errors"].get("tf") == len(MISSING), st
+    assert st["frames"] == N - len(MISSING) and st["gaussians"] > 0
+    log = h.node_log()
+    assert f"frame dropped: no transform 'map' <- '{OPTICAL_FRAME}'" in log and "falls in a gap" in log
+    assert h.node_p.poll() is None
+
+
+def _frame_msgs(h, i, stamp):
+    """Colour, depth, info of frame i, as the bag has them, with a new stamp."""
+    from rg_core.io import ros_images as ri
+
+    f = h.frames[i]
+    hdr = cv.header(OPTICAL_FRAME, stamp)
+    color = CompressedImage(header=hdr, format="rgb8; jpeg compressed bgr8",
+                            data=ri.encode_jpeg(f.load_rgb()))
+    depth = CompressedImage(header=hdr, format="16UC1; compressedDepth png", data=ri.encode_compressed_depth(f.load_depth()))
+    K = f.intrinsics.K
+    info = CameraInfo(header=hdr, width=f.intrinsics.width, height=f.intrinsics.height, distortion_model="plumb_bob",
+                      d=[0.0] * 5, k=K.reshape(-1).tolist(), r=np.eye(3).reshape(-1).tolist(),
+                      p=np.hstack([K, np.zeros((3, 1))]).reshape(-1).tolist())
+    return color, depth, info
+
+
+def _tf(parent, child, stamp, t=(0.0, 0.0, 0.0), q=(0.0, 0.0, 0.0, 1.0)):
+    ts = TransformStamped(header=cv.header(parent, stamp), child_frame_id=child)
+    ts.transform.translation.x, ts.transform.translation.y, ts.transform.translation.z = t
+    r = ts.transform.rotation
+    r.x, r.y, r.z, r.w = q
+    return ts
+
+
+@pytest.mark.parametrize("case", ["unknown_format", "wrong_frame_id", "tf_loop", "nan_transform", "zero_focal"])
+def test_bad_input_keeps_node_and_map(h, case):
+    before = h.fresh()
+    expect = {"unknown_format": "'h264' is not supported", "wrong_frame_id": "\"camera_nowhere\" passed to lookup",
+              "tf_loop": "would close a loop", "nan_transform": "NaN or inf",
+              "zero_focal": "focal lengths must be > 0"}[case]
+
+    def send():
+        stamp = cv.from_time(h.node.get_clock().now().to_msg())
+        color, depth, info = _frame_msgs(h, 0, stamp)
+        if case == "unknown_format":
+            color.format = "h264"
+        elif case == "wrong_frame_id":
+            for m in (color, depth, info):
+                m.header.frame_id = "camera_nowhere"
+        elif case == "tf_loop":
+            h.pub_tf.publish(TFMessage(transforms=[_tf(OPTICAL_FRAME, "odom", stamp)]))
+        elif case == "nan_transform":
+            h.pub_tf.publish(TFMessage(transforms=[_tf("odom", "base_link", stamp, t=(math.nan, 0.0, 0.0))]))
+        else:
+            info.k = [0.0] * 9
+        for pub, m in ((h.pub_color, color), (h.pub_depth, depth), (h.pub_info, info)):
+            pub.publish(m)
+        return expect in h.node_log()
+
+    wait_for(send, 30, f"'{expect}' in the node log")
+    after = h.fresh()
+    assert after["frames"] == before["frames"] and after["gaussians"] == before["gaussians"]
+    assert h.node_p.poll() is None
+
+
+def test_replay_of_a_truncated_bag_is_a_clear_error(h):
+    mcap = next(h.bag.glob("*.mcap"))
+    cut = h.tmp / "cut.mcap"
+    cut.write_bytes(mcap.read_bytes()[: mcap.stat().st_size // 3])
+    rep = h.replay(cut, "--wait", "0")
+    assert rep.returncode == 2 and "cut.mcap" in rep.stderr and "truncated" in rep.stderr, rep.stderr
+    assert h.node_p.poll() is None
+
+
+def test_replay_loop_keeps_stamps_increasing(h, tmp_path):
+    """--loop: the second pass comes with stamps shifted by the bag's duration (probe on /tf)."""
+    got = []
+    sub = h.node.create_subscription(TFMessage, "/tf", lambda m: got.extend(
+        cv.from_time(t.header.stamp) for t in m.transforms if t.child_frame_id == "base_link"), 100)
+    try:
+        small = write_scene_bag(h.frames[:3], tmp_path / "small", stamp0=1_700_002_000.0)
+        rep = h.replay(small, "--topics", "/tf", "--loop", "--count", "14", "--rate", "4")
+        assert rep.returncode == 0 and "2 passes" in rep.stdout + rep.stderr, rep.stdout + rep.stderr
+        wait_for(lambda: len(got) >= 6, 10, f"two passes of odom -> base_link on /tf (got {got})")
+        assert all(b > a for a, b in zip(got, got[1:])), got
+    finally:
+        h.node.destroy_subscription(sub)
