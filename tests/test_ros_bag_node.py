@@ -254,3 +254,14 @@ def test_replay_loop_keeps_stamps_increasing(h, tmp_path):
         assert got[-1] - got[0] > 0.5, got   # stamps from different passes (a pass spans 0.13 s of stamps)
     finally:
         h.node.destroy_subscription(sub)
+
+
+def test_realsense_params_match_the_recorded_topics():
+    """config/realsense.yaml names the topics a realsense2_camera bag holds (what rosbag_write writes)."""
+    from pathlib import Path
+
+    from rg_ros.node import read_params_file
+
+    p = read_params_file(Path(__file__).resolve().parents[1] / "config" / "realsense.yaml")
+    assert (p["color_topic"], p["depth_topic"], p["camera_info_topic"]) == (COLOR_TOPIC, DEPTH_TOPIC, INFO_TOPIC)
+    assert p["pose_source"] == "tf"
