@@ -73,6 +73,15 @@ def test_bag_reads_back_the_scene(bag, frames):
     assert len(single.train) + len(single.test) == N_FRAMES and len(single.test) == 3
 
 
+def test_raw_image_bag_is_lossless(frames, tmp_path):
+    """Uncompressed sensor_msgs/Image (bgr8, 16UC1) on the raw RealSense topics, auto-detected."""
+    b = write_scene_bag(frames[:3], tmp_path / "raw", raw=True)
+    scene = read_bag(b, test_every=0)
+    assert scene.info["topics"]["color"] == COLOR_TOPIC.rsplit("/", 1)[0] and len(scene.train) == 3
+    np.testing.assert_array_equal(scene.train[1].load_rgb(), frames[1].load_rgb())
+    np.testing.assert_allclose(scene.train[1].load_depth(), frames[1].load_depth(), atol=1e-6)
+
+
 def test_sqlite3_bag_and_odometry_and_topic_pose_sources(frames, tmp_path):
     """db3 storage; pose_source topic (PoseStamped) and odometry (nav_msgs/Odometry + static TF)."""
     from rosbags.typesys import Stores, get_typestore

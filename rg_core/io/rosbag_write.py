@@ -61,9 +61,11 @@ def base_from_optical() -> np.ndarray:
 
 
 def write_scene_bag(frames, out: str | Path, stamp0: float = 1_700_000_000.0, period: float = 1.0 / 15.0,
-                    jpeg_quality: int = 95, tf_missing=(), storage: str = "mcap", map_frame: str = "map") -> Path:
+                    jpeg_quality: int = 95, tf_missing=(), storage: str = "mcap", map_frame: str = "map",
+                    raw: bool = False) -> Path:
     """Write posed RGB-D `frames` (rg_core Frame) as a rosbag2 folder `out`; returns `out`.
-    Frame i is stamped stamp0 + i * period."""
+    Frame i is stamped stamp0 + i * period. raw=True: uncompressed sensor_msgs/Image (bgr8 colour,
+    16UC1 depth) on the topics without the image_transport suffix."""
     from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
@@ -75,6 +77,7 @@ def write_scene_bag(frames, out: str | Path, stamp0: float = 1_700_000_000.0, pe
     Transform, TS = M["geometry_msgs/msg/Transform"], M["geometry_msgs/msg/TransformStamped"]
     TFMessage, Compressed = M["tf2_msgs/msg/TFMessage"], M["sensor_msgs/msg/CompressedImage"]
     CameraInfo, ROI = M["sensor_msgs/msg/CameraInfo"], M["sensor_msgs/msg/RegionOfInterest"]
+    RawImage = M["sensor_msgs/msg/Image"]
 
     def stamp(t: float):
         sec, ns = divmod(int(round(t * 1e9)), 1_000_000_000)
@@ -121,12 +124,22 @@ def write_scene_bag(frames, out: str | Path, stamp0: float = 1_700_000_000.0, pe
         h, w = rgb.shape[:2]
         K = np.asarray(f.intrinsics.K, np.float64)
         log_t = t + 0.005   # images arrive a little after their stamp
-        msgs.append((log_t, COLOR_TOPIC, Compressed(header=hdr(OPTICAL_FRAME, t), format="rgb8; jpeg compressed bgr8",
-                                                    data=np.frombuffer(ros_images.encode_jpeg(rgb, jpeg_quality),
-                                                                       np.uint8)), "sensor_msgs/msg/CompressedImage"))
-        msgs.append((log_t, DEPTH_TOPIC, Compressed(header=hdr(OPTICAL_FRAME, t), format="16UC1; compressedDepth png",
-                                                    data=np.frombuffer(ros_images.encode_compressed_depth(depth),
-                                                                       np.uint8)), "sensor_msgs/msg/CompressedImage"))
+        if raw:
+            bgr = np.ascontiguousarray(rgb[..., ::-1])
+            mm = np.where(np.isfinite(depth) & (depth > 0), np.rint(depth * 1000.0), 0).clip(0, 65535).astype("<u2")
+            msgs.append((log_t, COLOR_TOPIC.rsplit("/", 1)[0], RawImage(
+                header=hdr(OPTICAL_FRAME, t), height=h, width=w, encoding="bgr8", is_bigendian=0, step=w * 3,
+                data=bgr.reshape(-1)), "sensor_msgs/msg/Image"))
+            msgs.append((log_t, DEPTH_TOPIC.rsplit("/", 1)[0], RawImage(
+                header=hdr(OPTICAL_FRAME, t), height=h, width=w, encoding="16UC1", is_bigendian=0, step=w * 2,
+                data=mm.view(np.uint8).reshape(-1)), "sensor_msgs/msg/Image"))
+        else:
+            msgs.append((log_t, COLOR_TOPIC, Compressed(
+                header=hdr(OPTICAL_FRAME, t), format="rgb8; jpeg compressed bgr8",
+                data=np.frombuffer(ros_images.encode_jpeg(rgb, jpeg_quality), np.uint8)), "sensor_msgs/msg/CompressedImage"))
+            msgs.append((log_t, DEPTH_TOPIC, Compressed(
+                header=hdr(OPTICAL_FRAME, t), format="16UC1; compressedDepth png",
+                data=np.frombuffer(ros_images.encode_compressed_depth(depth), np.uint8)), "sensor_msgs/msg/CompressedImage"))
         P = np.hstack([K, np.zeros((3, 1))])
         msgs.append((log_t, INFO_TOPIC, CameraInfo(
             header=hdr(OPTICAL_FRAME, t), height=h, width=w, distortion_model="plumb_bob", d=np.zeros(5),
