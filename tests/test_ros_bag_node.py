@@ -63,6 +63,7 @@ class BagHarness:
         rclpy.init(context=self.ctx)
         self.node = rclpy.create_node("rg_bag_probe", context=self.ctx)
         self.status: dict = {}
+        self.statuses: dict = {}
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_status, 10)
         self.ground = self.node.create_client(Ground, "/ground")
         self.reset = self.node.create_client(Trigger, "/rg_node/reset")
@@ -81,8 +82,6 @@ class BagHarness:
 
     def _on_status(self, msg):
         for s in msg.status:
-            if s.name.split(":")[0] != "/rg_node":
-                continue
             vals = {}
             for kv in s.values:
                 try:
@@ -90,7 +89,9 @@ class BagHarness:
                 except ValueError:
                     vals[kv.key] = kv.value
             vals["_t"], vals["_message"] = time.monotonic(), s.message
-            self.status = vals
+            self.statuses[s.name.split(":")[0]] = vals
+            if s.name.split(":")[0] == "/rg_node":
+                self.status = vals
 
     def fresh(self, timeout=15.0):
         t = time.monotonic()
@@ -265,3 +266,61 @@ def test_realsense_params_match_the_recorded_topics():
     p = read_params_file(Path(__file__).resolve().parents[1] / "config" / "realsense.yaml")
     assert (p["color_topic"], p["depth_topic"], p["camera_info_topic"]) == (COLOR_TOPIC, DEPTH_TOPIC, INFO_TOPIC)
     assert p["pose_source"] == "tf"
+
+
+def test_odometry_pose_source(h):
+    """pose_source odometry: nav_msgs/Odometry (map <- base_link) chained with the static TF
+    base_link -> camera_link -> optical frame; the saved map holds the camera poses of the scene."""
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import DurabilityPolicy
+
+    from rg_core.geometry.tf_buffer import rot_to_quat
+    from rg_core.io.rosbag_write import BASE_FROM_CAMLINK_PITCH, BASE_FROM_CAMLINK_T, _rot_y, _T, base_from_optical
+    from rg_core.geometry.conventions import BODY_FROM_OPTICAL
+    from rg_core.map.store import load_map
+
+    save = h.tmp / "c.pt"
+    topics = {"color_topic": "/c/color/image_raw/compressed", "depth_topic": "/c/depth/image_raw/compressedDepth",
+              "camera_info_topic": "/c/info", "odom_topic": "/c/odom"}
+    params = write_params(h.tmp / "c.yaml", "rg_node_c", **topics, pose_source="odometry", features=False,
+                          map_width=80, iters_per_keyframe=1, torch_threads=1, status_period=0.3,
+                          ground_service="/ground_c", save_path=str(save), frame_queue_size=16, tf_wait=2.0)
+    log = h.tmp / "node_c.log"
+    node_c = start(["node", "--params", str(params), "--name", "rg_node_c"], log)
+    q = qos_profile_sensor_data
+    pubs = [h.node.create_publisher(CompressedImage, topics["color_topic"], q),
+            h.node.create_publisher(CompressedImage, topics["depth_topic"], q),
+            h.node.create_publisher(CameraInfo, topics["camera_info_topic"], q)]
+    pub_odom = h.node.create_publisher(Odometry, topics["odom_topic"], q)
+    pub_static = h.node.create_publisher(TFMessage, "/tf_static", QoSProfile(
+        depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+
+    def tfs(parent, child, T, stamp):
+        return _tf(parent, child, stamp, t=tuple(T[:3, 3]), q=tuple(rot_to_quat(T[:3, :3])))
+
+    try:
+        pub_static.publish(TFMessage(transforms=[
+            tfs("base_link", "camera_link", _T(_rot_y(BASE_FROM_CAMLINK_PITCH), BASE_FROM_CAMLINK_T), 0.0),
+            tfs("camera_link", OPTICAL_FRAME, BODY_FROM_OPTICAL, 0.0)]))
+        wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs + [pub_odom]), 60, "node C subscriptions")
+        save_client = h.node.create_client(Trigger, "/rg_node_c/save_map")
+        for i in range(3):
+            stamp = cv.from_time(h.node.get_clock().now().to_msg())
+            Tb = h.frames[i].cam_to_world @ np.linalg.inv(base_from_optical())   # map <- base_link
+            odom = Odometry(header=cv.header("map", stamp), child_frame_id="base_link")
+            odom.pose.pose = cv.matrix_to_pose(Tb)
+            pub_odom.publish(odom)
+            for pub, m in zip(pubs, _frame_msgs(h, i, stamp)):
+                pub.publish(m)
+            time.sleep(0.5)
+        wait_for(lambda: h.statuses.get("/rg_node_c", {}).get("frames", 0) >= 3
+                 and h.statuses["/rg_node_c"]["queue"] == 0, 90,
+                 lambda: f"node C to map 3 frames (status {h.statuses.get('/rg_node_c')})")
+        res = h.call(save_client, Trigger.Request())
+        assert res.success, res.message
+        kfs = {round(kf.stamp, 3): kf for kf in load_map(save).keyframes}
+        assert kfs, "no keyframe"
+        first = min(kfs)
+        np.testing.assert_allclose(kfs[first].cam_to_world, h.frames[0].cam_to_world, atol=1e-5)
+    finally:
+        stop(node_c)
