@@ -246,6 +246,7 @@ class GroundingNode(Node):
             raise ValueError(f"parameter pose_source: '{p.pose_source}' is not one of {', '.join(POSE_SOURCES)}")
         self.tf = TFBuffer(p.tf_cache_time, p.tf_extrapolation, p.tf_max_gap)
         self._tf_pending: list[tuple[float, Frame, object]] = []   # (deadline, frame without pose, pose message)
+        self._tf_lock = threading.Lock()   # the pending frames: touched by the sensor and the TF callbacks
         self.tf_dropped = 0
         roles = ("color", "depth", "info") + (("pose",) if p.pose_source != "tf" else ())
         self.sync = ApproximateTimeSync(roles, p.sync_queue_size, p.sync_slop, callback=self._on_synced)
@@ -267,7 +268,9 @@ class GroundingNode(Node):
 
             self.create_subscription(Odometry, p.odom_topic, lambda m: self._on_msg("pose", m), qos,
                                      callback_group=sensors)
-        self._subscribe_tf(sensors)
+        # TF in its own group: processed alongside the images, never queued behind them (at one message
+        # per topic and executor turn, /tf fell behind the images on a loaded CPU and frames timed out)
+        self._subscribe_tf(MutuallyExclusiveCallbackGroup())
 
         from rg_interfaces.srv import Ground
 
@@ -358,10 +361,11 @@ class GroundingNode(Node):
                 return self._warn("pose", f"frame rejected: bad pose on {p.pose_topic}: {exc}")
             return self._submit(Frame(rgb, d, K, c2w, s.stamps[0], color.header.frame_id), color.header.stamp, w, h)
         frame = Frame(rgb, d, K, np.eye(4), s.stamps[0], color.header.frame_id)
-        self._tf_pending.append((time.monotonic() + p.tf_wait, frame, (pose, color.header.stamp, w, h)))
-        if len(self._tf_pending) > max(2 * p.frame_queue_size, 4):   # bounded: the oldest waits no longer
-            _, old, extra = self._tf_pending.pop(0)
-            self._tf_drop(old, extra[0], "too many frames waiting for their transform")
+        with self._tf_lock:
+            self._tf_pending.append((time.monotonic() + p.tf_wait, frame, (pose, color.header.stamp, w, h)))
+            if len(self._tf_pending) > max(2 * p.frame_queue_size, 4):   # bounded: the oldest waits no longer
+                _, old, extra = self._tf_pending.pop(0)
+                self._tf_drop(old, extra[0], "too many frames waiting for their transform")
         self._try_pending()
 
     def _submit(self, frame: Frame, stamp_msg, w: int, h: int) -> None:
@@ -419,6 +423,10 @@ class GroundingNode(Node):
 
     def _try_pending(self) -> None:
         """Submit waiting frames whose transform is now known; drop those past their deadline."""
+        with self._tf_lock:
+            self._try_pending_locked()
+
+    def _try_pending_locked(self) -> None:
         now = time.monotonic()
         keep = []
         for deadline, frame, extra in self._tf_pending:
@@ -498,7 +506,8 @@ class GroundingNode(Node):
         self.worker.reset()
         self.sync.reset()
         self.tf.clear()
-        self._tf_pending = []
+        with self._tf_lock:
+            self._tf_pending = []
         with self._state_lock:
             self._last_result = None
         self.pub_markers.publish(result_markers(GroundingResult(False, "reset"), self.p.map_frame, self._stamp_now()))
