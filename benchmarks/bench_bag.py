@@ -86,7 +86,7 @@ def main() -> int:
                "psnr_diff_db": round(runs["bag"]["psnr"] - runs["folder"]["psnr"], 3),
                "gaussians_ratio": round(runs["bag"]["gaussians"] / max(runs["folder"]["gaussians"], 1), 4)}
         print(json.dumps(out))
-        print(f"| source | test PSNR (dB) | Gaussians | keyframes | s |\n|---|---|---|---|---|\n"
+        print("| source | test PSNR (dB) | Gaussians | keyframes | s |\n|---|---|---|---|---|\n"
               + "\n".join(f"| {k} | {runs[k]['psnr']:.2f} | {runs[k]['gaussians']} | {runs[k]['keyframes']} | "
                           f"{runs[k]['seconds']:.0f} |" for k in runs), file=sys.stderr)
         if args.out:

@@ -39,7 +39,7 @@ def _shift(msg, dt_ns: int) -> None:
 
 def replay_bag(args, ros_argv: list[str]) -> int:
     from rg_core.io.images import SceneError
-    from rg_core.io.rosbag import iter_messages, open_reader
+    from rg_core.io.rosbag import open_reader
 
     speed = args.rate or 1.0
     path = Path(args.scene)
