@@ -136,7 +136,7 @@ def cmd_map(args, cfg) -> dict:
         from .models import make_perception
 
         generator, embedder = make_perception(preset, cfg.models)
-    mapper, report = map_scene(args.scene, mcfg, progress=not args.quiet)
+    mapper, report = map_scene(args.scene, mcfg, progress=not args.quiet, bag_options=_bag_options(args))
     if args.supervise:
         from .perception.supervision import supervise_map
 
@@ -151,6 +151,32 @@ def cmd_map(args, cfg) -> dict:
         raise ValueError("--train-field needs --supervise (the field trains on the 2D supervision)")
     report["map"] = str(save_map(mapper, args.out))
     return report
+
+
+def _bag_options(args):
+    """BagOptions from `rg map`'s --bag-* arguments (None when the scene is not a bag)."""
+    from .io.rosbag import BagOptions, is_bag
+
+    if not is_bag(args.scene):
+        return None
+    fields = {f.name for f in dataclasses.fields(BagOptions)}
+    return BagOptions(**{k: v for k, v in ((k[4:], v) for k, v in vars(args).items() if k.startswith("bag_"))
+                         if k in fields and v is not None})
+
+
+def _add_bag_args(p) -> None:
+    """`rg map BAG` options (rg_core.io.rosbag.BagOptions; empty topics are auto-detected)."""
+    from .io.rosbag import POSE_SOURCES, BagOptions
+
+    d = BagOptions()
+    g = p.add_argument_group("ROS 2 bags (.mcap, .db3 or a rosbag2 folder)")
+    for name in ("color_topic", "depth_topic", "camera_info_topic", "pose_topic"):
+        g.add_argument(f"--{name.replace('_', '-')}", dest=f"bag_{name}", help="default: auto-detect")
+    g.add_argument("--pose-source", dest="bag_pose_source", choices=POSE_SOURCES, help=f"default {d.pose_source}")
+    g.add_argument("--map-frame", dest="bag_map_frame", help=f"default {d.map_frame}")
+    g.add_argument("--tf-max-gap", dest="bag_tf_max_gap", type=float,
+                   help=f"seconds; frames in a longer TF gap are dropped (default {d.tf_max_gap}; 0 = tf2's any gap)")
+    g.add_argument("--sync-slop", dest="bag_sync_slop", type=float, help=f"seconds (default {d.sync_slop})")
 
 
 def _camera_from_args(args, grounder, result):
@@ -278,7 +304,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_synth)
 
     p = sub.add_parser("map", help="build a Gaussian map from a scene's training frames, evaluate on test views")
-    p.add_argument("scene", help="ReasoningGD scene folder or real capture folder")
+    p.add_argument("scene", help="ReasoningGD scene folder, real capture folder or ROS 2 bag (.mcap, .db3, folder)")
     p.add_argument("--out", required=True, help="map file to write (e.g. scene.rgmap)")
     p.add_argument("--max-gaussians", type=_positive)
     p.add_argument("--iters-per-keyframe", type=int)
@@ -288,6 +314,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--train-field", type=float, metavar="SECONDS",
                    help="then train the feature field for this many seconds (needs --supervise)")
     p.add_argument("--preset", help="models of the supervision: offline, paper, paper_cpu (default: config models.preset)")
+    _add_bag_args(p)
     common(p)
     p.set_defaults(func=cmd_map)
 

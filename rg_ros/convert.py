@@ -17,13 +17,12 @@ from rg_core.geometry.conventions import PoseError, check_rigid
 from rg_core.grounding.result import GroundedObject as CoreObject
 from rg_core.grounding.result import GroundingResult
 
+from rg_core.io.ros_images import COLOR_ENCODINGS, DEPTH_ENCODINGS, ENCODINGS  # noqa: F401 (re-exported)
+from rg_core.io.ros_images import _unsupported, decode_color, decode_depth
+from rg_core.io.ros_images import image_array as _image_array
+
 from .pointcloud import to_pointcloud2
 
-# encoding -> (numpy dtype, channels)
-ENCODINGS = {"rgb8": (np.uint8, 3), "bgr8": (np.uint8, 3), "rgba8": (np.uint8, 4), "bgra8": (np.uint8, 4),
-             "mono8": (np.uint8, 1), "16UC1": (np.uint16, 1), "32FC1": (np.float32, 1)}
-COLOR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8")
-DEPTH_ENCODINGS = ("16UC1", "32FC1")   # millimetres, metres
 MODES = ("auto", "explicit", "implicit")
 QUAT_NORM_TOL = 1e-2   # |norm - 1| above this is a broken quaternion, not rounding
 
@@ -54,47 +53,15 @@ def header(frame_id: str = "", stamp: float | Time | None = None) -> Header:
 
 # ---------------------------------------------------------------------------------- images
 
-def _unsupported(encoding: str, allowed) -> ValueError:
-    return ValueError(f"Image encoding '{encoding}' is not supported here; supported: {', '.join(allowed)}")
+def image_to_rgb(msg) -> np.ndarray:
+    """Colour Image (rgb8, bgr8, rgba8, bgra8, mono8) or CompressedImage (jpeg/png) -> uint8 [H, W, 3] RGB."""
+    return decode_color(msg)
 
 
-def _image_array(msg: Image, allowed) -> np.ndarray:
-    """Image -> native-endian array [H, W, C] (a copy), honouring step padding and is_bigendian."""
-    if msg.encoding not in allowed:
-        raise _unsupported(msg.encoding, allowed)
-    dtype, ch = ENCODINGS[msg.encoding]
-    h, w = msg.height, msg.width
-    if h == 0 or w == 0:
-        raise ValueError(f"Image is empty ({w}x{h})")
-    item = np.dtype(dtype).itemsize
-    row_bytes = w * ch * item
-    if msg.step < row_bytes:
-        raise ValueError(f"Image step {msg.step} < width * channels * bytes = {row_bytes} ({msg.encoding})")
-    raw = np.frombuffer(msg.data, dtype=np.uint8)
-    need = (h - 1) * msg.step + row_bytes   # the last row's padding may be missing
-    if raw.size < need:
-        raise ValueError(f"Image data has {raw.size} bytes, {w}x{h} {msg.encoding} with step {msg.step} needs {need}")
-    rows = np.lib.stride_tricks.as_strided(raw, shape=(h, row_bytes), strides=(msg.step, 1))   # [H, row_bytes]
-    typed = np.dtype(dtype).newbyteorder(">" if msg.is_bigendian else "<") if item > 1 else np.dtype(dtype)
-    arr = np.ascontiguousarray(rows).view(typed).reshape(h, w, ch)
-    return arr.astype(np.dtype(dtype).newbyteorder("="), copy=True)
-
-
-def image_to_rgb(msg: Image) -> np.ndarray:
-    """Colour image -> uint8 [H, W, 3] RGB (alpha dropped)."""
-    arr = _image_array(msg, COLOR_ENCODINGS)
-    if msg.encoding.startswith("bgr"):
-        arr = arr[..., 2::-1]
-    return np.ascontiguousarray(arr[..., :3])
-
-
-def image_to_depth(msg: Image) -> np.ndarray:
-    """Depth image (16UC1 millimetres or 32FC1 metres) -> float32 [H, W] metres; 0 = invalid
-    (zero, NaN, inf and negative values all become 0, as the mapper expects)."""
-    arr = _image_array(msg, DEPTH_ENCODINGS)[..., 0]
-    depth = arr.astype(np.float32) * np.float32(0.001) if msg.encoding == "16UC1" else arr.astype(np.float32)
-    depth[~np.isfinite(depth) | (depth < 0)] = 0.0
-    return depth
+def image_to_depth(msg) -> np.ndarray:
+    """Depth Image (16UC1 millimetres or 32FC1 metres) or compressedDepth CompressedImage -> float32
+    [H, W] metres; 0 = invalid (zero, NaN, inf and negative values all become 0, as the mapper expects)."""
+    return decode_depth(msg)
 
 
 def image_to_mask(msg: Image) -> np.ndarray:

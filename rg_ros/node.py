@@ -16,14 +16,16 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
+from rg_core.geometry.tf_buffer import TFBuffer, TFError
 from rg_core.grounding.result import GroundingResult
 
 from . import convert as cv
@@ -40,15 +42,31 @@ class NodeParams:
     """The node's ROS parameters (name, default; the type follows the default)."""
 
     color_topic: str = "/camera/color/image_raw"
-    """sensor_msgs/Image, rgb8 or bgr8."""
+    """sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8, mono8); a name ending /compressed subscribes to
+    sensor_msgs/CompressedImage (jpeg/png), as image_transport names it."""
     depth_topic: str = "/camera/aligned_depth_to_color/image_raw"
-    """sensor_msgs/Image, 16UC1 (mm) or 32FC1 (m), registered to the colour image."""
+    """sensor_msgs/Image, 16UC1 (mm) or 32FC1 (m), registered to the colour image; a name ending
+    /compressedDepth subscribes to image_transport's compressedDepth CompressedImage."""
     camera_info_topic: str = "/camera/color/camera_info"
     """sensor_msgs/CameraInfo of the colour camera."""
+    pose_source: str = "tf"
+    """tf: look up map_frame <- the colour image's header.frame_id on /tf + /tf_static at its stamp;
+    topic: geometry_msgs/PoseStamped on pose_topic; odometry: nav_msgs/Odometry on odom_topic
+    (chained with TF to the image's frame, and to map_frame when the odometry's frame differs)."""
     pose_topic: str = "/camera/pose"
-    """geometry_msgs/PoseStamped of the colour optical frame in map_frame."""
+    """geometry_msgs/PoseStamped of the colour optical frame in map_frame (pose_source topic)."""
+    odom_topic: str = "/odom"
+    """nav_msgs/Odometry (pose_source odometry)."""
     map_frame: str = "map"
     """Frame of poses, clouds and markers."""
+    tf_wait: float = 0.5
+    """Seconds a frame waits for its transform; then it is dropped and counted (diagnostics 'tf')."""
+    tf_cache_time: float = 10.0
+    """Seconds of dynamic TF history kept."""
+    tf_max_gap: float = 0.5
+    """A dynamic TF link is not interpolated across a longer gap between samples (s); 0 = any gap (tf2)."""
+    tf_extrapolation: float = 0.0
+    """Seconds past a link's newest (or before its oldest) sample where its nearest sample is used (tf2: 0)."""
     ground_service: str = "/ground"
     """Name of the rg_interfaces/Ground service."""
     sync_queue_size: int = 10
@@ -111,6 +129,15 @@ class NodeParams:
 
 
 PARAM_NAMES = tuple(f.name for f in dataclasses.fields(NodeParams))
+POSE_SOURCES = ("tf", "topic", "odometry")
+
+
+def _final(exc: TFError) -> bool:
+    """A lookup error that waiting cannot cure: data already past the stamp (a gap, the past) or a loop."""
+    from rg_core.geometry.tf_buffer import LoopError
+
+    msg = str(exc)
+    return isinstance(exc, LoopError) or "falls in a gap" in msg or "extrapolation into the past" in msg
 
 
 def coerce_params(values: dict, where: str = "parameters") -> dict:
@@ -228,16 +255,35 @@ class GroundingNode(Node):
         self.input_errors: dict[str, int] = {}
 
         # -------------------------------------------------------------- interfaces
-        self.sync = ApproximateTimeSync(("color", "depth", "info", "pose"), p.sync_queue_size, p.sync_slop,
-                                        callback=self._on_synced)
+        if p.pose_source not in POSE_SOURCES:
+            raise ValueError(f"parameter pose_source: '{p.pose_source}' is not one of {', '.join(POSE_SOURCES)}")
+        self.tf = TFBuffer(p.tf_cache_time, p.tf_extrapolation, p.tf_max_gap)
+        self._tf_pending: list[tuple[float, Frame, object]] = []   # (deadline, frame without pose, pose message)
+        self._tf_lock = threading.Lock()   # the pending frames: touched by the sensor and the TF callbacks
+        self.tf_dropped = 0
+        roles = ("color", "depth", "info") + (("pose",) if p.pose_source != "tf" else ())
+        self.sync = ApproximateTimeSync(roles, p.sync_queue_size, p.sync_slop, callback=self._on_synced)
         sensors = MutuallyExclusiveCallbackGroup()
         qos = qos_profile_sensor_data
-        self.create_subscription(Image, p.color_topic, lambda m: self._on_msg("color", m), qos, callback_group=sensors)
-        self.create_subscription(Image, p.depth_topic, lambda m: self._on_msg("depth", m), qos, callback_group=sensors)
+        color_type = CompressedImage if p.color_topic.rstrip("/").endswith("/compressed") else Image
+        depth_type = CompressedImage if p.depth_topic.rstrip("/").endswith("/compressedDepth") else Image
+        self.create_subscription(color_type, p.color_topic, lambda m: self._on_msg("color", m), qos,
+                                 callback_group=sensors)
+        self.create_subscription(depth_type, p.depth_topic, lambda m: self._on_msg("depth", m), qos,
+                                 callback_group=sensors)
         self.create_subscription(CameraInfo, p.camera_info_topic, lambda m: self._on_msg("info", m), qos,
                                  callback_group=sensors)
-        self.create_subscription(PoseStamped, p.pose_topic, lambda m: self._on_msg("pose", m), qos,
-                                 callback_group=sensors)
+        if p.pose_source == "topic":
+            self.create_subscription(PoseStamped, p.pose_topic, lambda m: self._on_msg("pose", m), qos,
+                                     callback_group=sensors)
+        elif p.pose_source == "odometry":
+            from nav_msgs.msg import Odometry
+
+            self.create_subscription(Odometry, p.odom_topic, lambda m: self._on_msg("pose", m), qos,
+                                     callback_group=sensors)
+        # TF in its own group: processed alongside the images, never queued behind them (at one message
+        # per topic and executor turn, /tf fell behind the images on a loaded CPU and frames timed out)
+        self._subscribe_tf(MutuallyExclusiveCallbackGroup())
 
         from rg_interfaces.srv import Ground
 
@@ -259,8 +305,10 @@ class GroundingNode(Node):
         if p.map_cloud_period > 0:
             self.create_timer(p.map_cloud_period, self._on_map_cloud, callback_group=MutuallyExclusiveCallbackGroup())
         self.worker.start()
+        pose_from = {"tf": f"TF {p.map_frame} <- image frame", "topic": f"PoseStamped {p.pose_topic}",
+                     "odometry": f"Odometry {p.odom_topic}"}[p.pose_source]
         log.info(f"listening: colour {p.color_topic}, depth {p.depth_topic}, info {p.camera_info_topic}, "
-                 f"pose {p.pose_topic}; service {p.ground_service}; features {'on' if p.features else 'off'}")
+                 f"pose from {pose_from}; service {p.ground_service}; features {'on' if p.features else 'off'}")
 
     # ------------------------------------------------------------------------------ helpers
 
@@ -295,7 +343,8 @@ class GroundingNode(Node):
             self._warn(f"{topic}_msg", f"{topic} message dropped: {type(exc).__name__}: {exc}")
 
     def _on_synced(self, s: SyncedSet) -> None:
-        color, depth, info, pose = s.msgs
+        color, depth, info = s.msgs[:3]
+        pose = s.msgs[3] if len(s.msgs) > 3 else None
         p = self.p
         try:
             rgb = cv.image_to_rgb(color)
@@ -315,20 +364,104 @@ class GroundingNode(Node):
         if (w, h) != (rgb.shape[1], rgb.shape[0]):
             return self._warn("size_info", f"frame rejected: CameraInfo is {w}x{h} but the colour image is "
                               f"{rgb.shape[1]}x{rgb.shape[0]}")
-        if pose.header.frame_id and pose.header.frame_id != p.map_frame:
-            return self._warn("pose_frame", f"frame rejected: pose is in frame '{pose.header.frame_id}', "
-                              f"expected '{p.map_frame}' (parameter map_frame)")
-        try:
-            c2w = cv.pose_to_matrix(pose)
-        except ValueError as exc:   # PoseError: NaN, inf, non-unit quaternion
-            return self._warn("pose", f"frame rejected: bad pose on {p.pose_topic}: {exc}")
-        stamp = s.stamps[0]
-        frame_id = color.header.frame_id
+        if p.pose_source == "topic":
+            if pose.header.frame_id and pose.header.frame_id != p.map_frame:
+                return self._warn("pose_frame", f"frame rejected: pose is in frame '{pose.header.frame_id}', "
+                                  f"expected '{p.map_frame}' (parameter map_frame)")
+            try:
+                c2w = cv.pose_to_matrix(pose)
+            except ValueError as exc:   # PoseError: NaN, inf, non-unit quaternion
+                return self._warn("pose", f"frame rejected: bad pose on {p.pose_topic}: {exc}")
+            return self._submit(Frame(rgb, d, K, c2w, s.stamps[0], color.header.frame_id), color.header.stamp, w, h)
+        frame = Frame(rgb, d, K, np.eye(4), s.stamps[0], color.header.frame_id)
+        with self._tf_lock:
+            self._tf_pending.append((time.monotonic() + p.tf_wait, frame, (pose, color.header.stamp, w, h)))
+            if len(self._tf_pending) > max(2 * p.frame_queue_size, 4):   # bounded: the oldest waits no longer
+                _, old, extra = self._tf_pending.pop(0)
+                self._tf_drop(old, extra[0], "too many frames waiting for their transform")
+        self._try_pending()
+
+    def _submit(self, frame: Frame, stamp_msg, w: int, h: int) -> None:
         with self._state_lock:
-            self._camera = (K, w, h, c2w, frame_id, color.header.stamp)
-        if self.worker.submit(Frame(rgb, d, K, c2w, stamp, frame_id)):
+            self._camera = (frame.K, w, h, frame.cam_to_world, frame.frame_id, stamp_msg)
+        if self.worker.submit(frame):
             self._warn("queue_drop", f"mapping is slower than the input: dropped the oldest queued frame "
                        f"(queue of {self.worker.queue.maxsize}, {self.worker.queue.dropped} dropped)", period=10.0)
+
+    # ------------------------------------------------------------------------------ TF
+
+    def _subscribe_tf(self, group) -> None:
+        """/tf (volatile) and /tf_static (transient local: the latched statics), as tf2_ros listens."""
+        try:
+            from tf2_msgs.msg import TFMessage   # built from msg_tf2/ when no ROS 2 install provides it
+        except ImportError as exc:
+            if self.p.pose_source == "topic":   # poses come as PoseStamped: TF is not needed
+                self.get_logger().warning(f"no tf2_msgs ({exc}): not listening to /tf (pose_source topic)")
+                return
+            raise RuntimeError(f"pose_source {self.p.pose_source} needs tf2_msgs (scripts/bootstrap.sh builds it "
+                               f"from msg_tf2/): {exc}") from exc
+
+        dyn = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
+        static = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.create_subscription(TFMessage, "/tf", lambda m: self._on_tf(m, False), dyn, callback_group=group)
+        self.create_subscription(TFMessage, "/tf_static", lambda m: self._on_tf(m, True), static, callback_group=group)
+        self.create_timer(0.05, self._try_pending, callback_group=group)
+
+    def _on_tf(self, msg, static: bool) -> None:
+        for ts in msg.transforms:
+            tr = ts.transform
+            try:
+                self.tf.set_transform(ts.header.frame_id, ts.child_frame_id, cv.from_time(ts.header.stamp),
+                                      [tr.translation.x, tr.translation.y, tr.translation.z],
+                                      [tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w], static=static)
+            except TFError as exc:
+                self._warn("tf_input", f"transform refused ({'/tf_static' if static else '/tf'}): {exc}")
+        if self._tf_pending:
+            self._try_pending()
+
+    def _pose_of(self, frame: Frame, pose_msg) -> np.ndarray:
+        """cam_to_world of a frame from TF (pose_source tf) or odometry + TF; raises TFError / ValueError."""
+        from rg_core.geometry.conventions import check_rigid
+
+        p = self.p
+        if not frame.frame_id:
+            raise TFError("the colour image has an empty header.frame_id; TF needs its optical frame")
+        if p.pose_source == "tf":
+            return check_rigid(self.tf.lookup(p.map_frame, frame.frame_id, frame.stamp), "TF pose")
+        from rg_core.io.rosbag import odometry_pose
+
+        return odometry_pose(self.tf, p.map_frame, pose_msg, frame.frame_id, frame.stamp)
+
+    def _try_pending(self) -> None:
+        """Submit waiting frames whose transform is now known; drop those past their deadline."""
+        with self._tf_lock:
+            self._try_pending_locked()
+
+    def _try_pending_locked(self) -> None:
+        now = time.monotonic()
+        keep = []
+        for deadline, frame, extra in self._tf_pending:
+            pose_msg, stamp_msg, w, h = extra
+            try:
+                frame.cam_to_world = self._pose_of(frame, pose_msg)
+            except TFError as exc:
+                if now < deadline and not _final(exc):
+                    keep.append((deadline, frame, extra))
+                else:
+                    self._tf_drop(frame, pose_msg, str(exc))
+                continue
+            except ValueError as exc:   # PoseError: NaN / bad quaternion in the odometry
+                self._warn("pose", f"frame rejected: bad pose on {self.p.odom_topic}: {exc}")
+                continue
+            self._submit(frame, stamp_msg, w, h)
+        self._tf_pending = keep
+
+    def _tf_drop(self, frame: Frame, pose_msg, why: str) -> None:
+        self.tf_dropped += 1
+        self._warn("tf", f"frame dropped: no transform '{self.p.map_frame}' <- '{frame.frame_id}' at "
+                   f"t={frame.stamp:.6f} within {self.p.tf_wait:g} s: {why}")
 
     # ------------------------------------------------------------------------------ services
 
@@ -385,6 +518,9 @@ class GroundingNode(Node):
     def _on_reset(self, request, response):
         self.worker.reset()
         self.sync.reset()
+        self.tf.clear()
+        with self._tf_lock:
+            self._tf_pending = []
         with self._state_lock:
             self._last_result = None
         self.pub_markers.publish(result_markers(GroundingResult(False, "reset"), self.p.map_frame, self._stamp_now()))
@@ -421,6 +557,9 @@ class GroundingNode(Node):
         st = self.worker.stats()
         st["sync_dropped"] = sum(self.sync.dropped.values())
         st["input_errors"] = dict(self.input_errors)
+        st["pose_source"] = self.p.pose_source
+        st["tf_dropped"] = self.tf_dropped
+        st["tf_waiting"] = len(self._tf_pending)
         return st
 
     def _on_status(self) -> None:

@@ -3,6 +3,7 @@
   rg-node   --params config/grounding.yaml [--name rg_node] [--ros-args ...]
   rg-ground "query" [--mode auto|explicit|implicit] [--max-results N] [--timeout S] [--service /ground]
   rg-replay SCENE --rate HZ [--loop] [--count N] [--split train|test|all]
+  rg-replay BAG [--rate FACTOR] [--loop] [--topics T ...]   (.mcap, .db3 or a rosbag2 folder)
 """
 from __future__ import annotations
 
@@ -140,10 +141,13 @@ def frame_messages(frame, stamp, frame_id: str, map_frame: str):
 def replay_main(argv: list[str] | None = None) -> int:
     ours, ros_argv = _split_ros_args(argv)
     d = NodeParams()
-    ap = argparse.ArgumentParser(prog="rg-replay", description="Publish a scene's frames like a bag: rgb8, 16UC1 "
-                                 "depth, CameraInfo and PoseStamped with one stamp per frame")
-    ap.add_argument("scene", help="scene folder (ReasoningGD layout or a capture folder)")
-    ap.add_argument("--rate", type=float, default=2.0, help="frames per second")
+    ap = argparse.ArgumentParser(prog="rg-replay", description="Publish a scene's frames like a bag (rgb8, 16UC1 "
+                                 "depth, CameraInfo, PoseStamped and /tf map -> optical frame, one stamp per frame), "
+                                 "or play a ROS 2 bag on its recorded topics with its recorded stamps")
+    ap.add_argument("scene", help="scene folder (ReasoningGD layout or a capture folder) or a ROS 2 bag")
+    ap.add_argument("--rate", type=float, default=None, help="scene: frames per second (default 2); bag: playback "
+                                                           "speed factor (default 1 = as recorded)")
+    ap.add_argument("--topics", nargs="+", default=None, help="bag: play only these topics (default: all)")
     ap.add_argument("--loop", action="store_true", help="start again after the last frame (stamps keep increasing)")
     ap.add_argument("--count", type=int, default=0, help="stop after this many frames (0 = one pass or forever with --loop)")
     ap.add_argument("--split", choices=("train", "test", "all"), default="train")
@@ -155,10 +159,17 @@ def replay_main(argv: list[str] | None = None) -> int:
     ap.add_argument("--camera-info-topic", default=d.camera_info_topic)
     ap.add_argument("--pose-topic", default=d.pose_topic)
     args = ap.parse_args(ours)
-    if args.rate <= 0:
+    if args.rate is not None and not args.rate > 0:
         ap.error("--rate must be > 0")
     from rg_core.io.captures import read_scene
     from rg_core.io.images import SceneError
+    from rg_core.io.rosbag import is_bag
+
+    if is_bag(args.scene):
+        from .bag_replay import replay_bag
+
+        return replay_bag(args, ros_argv)
+    args.rate = args.rate or 2.0
 
     try:
         scene = read_scene(args.scene)
@@ -181,6 +192,7 @@ def replay_main(argv: list[str] | None = None) -> int:
     pubs = [node.create_publisher(Image, args.color_topic, qos), node.create_publisher(Image, args.depth_topic, qos),
             node.create_publisher(CameraInfo, args.camera_info_topic, qos),
             node.create_publisher(PoseStamped, args.pose_topic, qos)]
+    tf_pub = _tf_publisher(node)   # the same pose on /tf (map -> optical frame) for pose_source tf
     log = node.get_logger()
     sent = 0
     try:
@@ -194,6 +206,8 @@ def replay_main(argv: list[str] | None = None) -> int:
                 msgs = frame_messages(f, node.get_clock().now().to_msg(), args.frame_id, args.map_frame)
                 for pub, msg in zip(pubs, msgs):
                     pub.publish(msg)
+                if tf_pub is not None:
+                    tf_pub.publish(_pose_to_tf(msgs[3], args.frame_id))
                 sent += 1
                 if args.count and sent >= args.count:
                     raise StopIteration
@@ -209,6 +223,26 @@ def replay_main(argv: list[str] | None = None) -> int:
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+def _tf_publisher(node):
+    try:
+        from tf2_msgs.msg import TFMessage
+    except ImportError:
+        return None
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    return node.create_publisher(TFMessage, "/tf", QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+
+
+def _pose_to_tf(pose, child: str):
+    """PoseStamped (of `child` in the pose's frame) -> TFMessage with one TransformStamped."""
+    from geometry_msgs.msg import Transform, TransformStamped, Vector3
+    from tf2_msgs.msg import TFMessage
+
+    p = pose.pose.position
+    tr = Transform(translation=Vector3(x=p.x, y=p.y, z=p.z), rotation=pose.pose.orientation)
+    return TFMessage(transforms=[TransformStamped(header=pose.header, child_frame_id=child, transform=tr)])
 
 
 if __name__ == "__main__":

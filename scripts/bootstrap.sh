@@ -52,6 +52,7 @@ fi
 stamp_of() { cat "$ROOT"/requirements*.txt "$ROOT/setup.py" "$ROOT/scripts/bootstrap.sh" \
   $(find "$ROOT/rg_core" -name '*.cpp' -o -name '*.h' 2>/dev/null | sort) \
   $(find "$ROOT/msg" -path "$ROOT/msg/build" -prune -o -type f -print 2>/dev/null | sort) \
+  $(find "$ROOT/msg_tf2" -path "$ROOT/msg_tf2/build" -prune -o -type f -print 2>/dev/null | sort) \
   2>/dev/null | sha256sum | cut -d' ' -f1; }
 STAMP="$VENV/.rg_install_stamp"
 WANT="$(stamp_of)"
@@ -72,6 +73,16 @@ if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ] || [ ! -x "$VENV/bin/rg
   echo "bootstrap: building the ROS interfaces (msg/)" >&2
   "$VENV/bin/python" -m pip install -q -r "$ROOT/requirements-ros-build.txt" >&2
   "$VENV/bin/python" -m pip install -q --no-build-isolation --no-deps --force-reinstall "$ROOT/msg" >&2
+  # --- tf2_msgs (msg_tf2/, issue 16) ---------------------------------------------------------
+  # /tf and /tf_static need tf2_msgs, which has no wheel on PyPI: build the wire-compatible copy in
+  # msg_tf2/ (same names and type hashes; about 20 s) only when none is importable or the one in
+  # the venv is ours (a full ROS 2 install keeps its own).
+  if ! (cd / && "$VENV/bin/python" -c 'import tf2_msgs.msg' 2>/dev/null) \
+     || grep -qs 'ReasonGrounder' "$VENV/share/tf2_msgs/package.xml"; then
+    echo "bootstrap: building tf2_msgs (msg_tf2/)" >&2
+    "$VENV/bin/python" -m pip install -q --no-build-isolation --no-deps --force-reinstall "$ROOT/msg_tf2" >&2
+  fi
+  # --- end tf2_msgs ----------------------------------------------------------------------------
   echo "$WANT" > "$STAMP"
 else
   echo "bootstrap: $VENV is up to date" >&2

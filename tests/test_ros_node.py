@@ -87,7 +87,7 @@ class Harness:
         self.tmp = tmp
         self.log_a = tmp / "node_a.log"
         self.save_a = tmp / "map_a.pt"
-        params = write_params(tmp / "a.yaml", "rg_node", map_width=80, iters_per_keyframe=2, torch_threads=1,
+        params = write_params(tmp / "a.yaml", "rg_node", pose_source="topic", map_width=80, iters_per_keyframe=2, torch_threads=1,
                               frame_queue_size=2, features=True, train_slice=0.5, train_seconds_max=2.0,
                               status_period=0.3, save_path=str(self.save_a), mask_rate=4.0, map_cloud_period=1.0,
                               max_query_chars=2000, camera_info_timeout=3.0)
@@ -321,7 +321,8 @@ def test_start_up_map_missing_camera_info_and_sigint_save(h):
     assert h.save_a.is_file(), "needs the map saved by the previous test"
     loaded = load_map(h.save_a)
     log_b, save_b = h.tmp / "node_b.log", h.tmp / "map_b.pt"
-    params = write_params(h.tmp / "b.yaml", "rg_node_b", **TOPICS_B, load_map=str(h.save_a), features=False,
+    params = write_params(h.tmp / "b.yaml", "rg_node_b", **TOPICS_B, pose_source="topic", load_map=str(h.save_a),
+                          features=False,
                           ground_service="/ground_b", save_on_shutdown=True, save_path=str(save_b), map_width=80,
                           iters_per_keyframe=2, torch_threads=1, status_period=0.3, camera_info_timeout=1.0)
     node_b = start(["node", "--params", str(params), "--name", "rg_node_b"], log_b)

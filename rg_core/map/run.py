@@ -23,9 +23,9 @@ def stream_frames(mapper: Mapper, frames, progress: bool = True, desc: str = "ma
     return time.perf_counter() - t
 
 
-def map_scene(scene_dir, cfg: MapConfig, progress: bool = True) -> tuple[Mapper, dict]:
-    """Map the training frames of a scene and evaluate on its test frames."""
-    scene = read_scene(scene_dir, test_every=8)
+def map_scene(scene_dir, cfg: MapConfig, progress: bool = True, bag_options=None) -> tuple[Mapper, dict]:
+    """Map the training frames of a scene (folder or ROS 2 bag) and evaluate on its test frames."""
+    scene = read_scene(scene_dir, test_every=8, bag_options=bag_options)
     mapper = Mapper(cfg)
     seconds = stream_frames(mapper, scene.train, progress)
     seconds += mapper.refine(cfg.final_iters)
@@ -34,4 +34,6 @@ def map_scene(scene_dir, cfg: MapConfig, progress: bool = True) -> tuple[Mapper,
     report = {**mapper.stats(), "seconds_total": round(seconds, 3), "seconds_eval": round(time.perf_counter() - t, 3),
               "test": quality, "peak_rss_mb": round(peak_rss_mb(), 1), "scene": str(scene_dir),
               "train_frames": len(scene.train), "test_frames": len(scene.test)}
+    if getattr(scene, "info", None):   # a bag: topics used, frames dropped (TF missing, ...) per reason
+        report["bag"] = scene.info
     return mapper, report
