@@ -178,12 +178,22 @@ def _camera_from_args(args, grounder, result):
     return kf.K, kf.cam_to_world, kf.size[0], kf.size[1]
 
 
+def _prefetch(module: str) -> None:
+    """Import a module in a background thread (a later import of it waits for this one)."""
+    import importlib
+    import threading
+
+    if module not in sys.modules:
+        threading.Thread(target=importlib.import_module, args=(module,), daemon=True).start()
+
+
 def cmd_ground(args, cfg) -> dict:
     from .grounding.pipeline import Grounder
     from .map.store import load_map
 
     if args.backend:
         cfg.reason.backend = args.backend
+    _prefetch("sklearn.cluster")  # HDBSCAN's import (about a second) overlaps reading the map
     mapper = load_map(args.map)
     if getattr(mapper, "field", None) is None:
         raise ValueError(f"{args.map}: the map has no feature field; build it with rg map --supervise --train-field S")
