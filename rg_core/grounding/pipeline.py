@@ -26,6 +26,22 @@ from .vocabulary import build_vocabulary, looks_like_name
 log = logging.getLogger(__name__)
 
 
+class _threads:
+    """torch.set_num_threads(n) inside a block (n <= 0: leave it), restored after."""
+
+    def __init__(self, n: int):
+        self.n = n
+
+    def __enter__(self):
+        self.old = torch.get_num_threads()
+        if self.n > 0 and self.n != self.old:
+            torch.set_num_threads(self.n)
+
+    def __exit__(self, *exc):
+        if torch.get_num_threads() != self.old:
+            torch.set_num_threads(self.old)
+
+
 class Grounder:
     """ground(query) -> GroundingResult; masks(result, camera) -> amodal and visible masks.
 
@@ -46,6 +62,7 @@ class Grounder:
         # Clusters per (scale, region), field renders per keyframe, map spacing, vocabulary: valid
         # while the map and field are unchanged (rg_core/grounding/cache.py says how that is known).
         self.cache = MapCache(cache)
+        self._outer_threads = 0  # torch's thread count outside ground(): what big work runs with
         sset = getattr(mapper, "supervision", None)
         if sset is not None and getattr(sset, "text_embeddings", None):
             from ..perception.minilm import remember
@@ -199,7 +216,8 @@ class Grounder:
 
         def make() -> Groups:
             g = self.gcfg
-            feats = self.field.gaussian_instance(scale)                         # [N, Di]
+            with _threads(self._outer_threads):
+                feats = self.field.gaussian_instance(scale)                     # [N, Di]
             if region is None:
                 out = cluster_instances(feats, g.max_cluster_points, g.min_cluster_size, g.cluster_eps,
                                         seed=g.seed, method=g.cluster_method)
@@ -239,12 +257,20 @@ class Grounder:
         """The field rendered from a keyframe (latent, colour, depth, alpha), cached per keyframe."""
         self._check_cache()
         w, h = kf.size
-        return self.cache.get("renders", (kf.index, w, h), lambda: self.field.render(kf.K, kf.cam_to_world, w, h))
+        def make():
+            with _threads(self._outer_threads):
+                return self.field.render(kf.K, kf.cam_to_world, w, h)
+        return self.cache.get("renders", (kf.index, w, h), make)
 
     def _decompress(self, z: torch.Tensor) -> torch.Tensor:  # [..., k] -> [..., D]
         return self.mapper.supervision.pca.pca.inverse(z)
 
     def ground(self, query: str, mode: str = "auto", max_results: int = 1) -> GroundingResult:
+        self._outer_threads = torch.get_num_threads()
+        with _threads(self.gcfg.query_threads):
+            return self._ground(query, mode, max_results)
+
+    def _ground(self, query: str, mode: str, max_results: int) -> GroundingResult:
         t = {}
         t0 = time.perf_counter()
         bad = self._check_query(query)
