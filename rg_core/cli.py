@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from .config import ConfigError, load_config
-from .io.images import SceneError
+from .perception.masks import BackendError
 from .util import stdout_to_stderr
 
 
@@ -110,6 +110,7 @@ def cmd_demo(args, cfg) -> dict:
         for kind, text in (("explicit", q.explicit), ("implicit", q.implicit[0] if q.implicit else q.explicit)):
             res = grounder.ground(text, mode=kind)
             a = res.to_json()
+            a["expected"] = next((o.name for o in scene.objects if o.id == q.object_id), "")
             if res.success:
                 f = scene.test[0] if scene.test else scene.train[0]
                 W, H = f.intrinsics.width, f.intrinsics.height
@@ -147,6 +148,10 @@ def cmd_map(args, cfg) -> dict:
             from .field import FeatureField
 
             report["field"] = FeatureField(mapper, cfg.field).train(seconds=args.train_field, progress=not args.quiet)
+        from .grounding.pipeline import Grounder
+
+        # Name embeddings stored with the map: a later `rg ground` embeds only its query.
+        report["stored_texts"] = Grounder(mapper, getattr(mapper, "field", None), cfg).store_texts()
     elif args.train_field:
         raise ValueError("--train-field needs --supervise (the field trains on the 2D supervision)")
     report["map"] = str(save_map(mapper, args.out))
@@ -202,6 +207,15 @@ def _camera_from_args(args, grounder, result):
     return kf.K, kf.cam_to_world, kf.size[0], kf.size[1]
 
 
+def _prefetch(module: str) -> None:
+    """Import a module in a background thread (a later import of it waits for this one)."""
+    import importlib
+    import threading
+
+    if module not in sys.modules:
+        threading.Thread(target=importlib.import_module, args=(module,), daemon=True).start()
+
+
 def cmd_ground(args, cfg) -> dict:
     from .grounding.pipeline import Grounder
     from .map.store import load_map
@@ -214,6 +228,7 @@ def cmd_ground(args, cfg) -> dict:
     else:
         apply_reasoner(preset, cfg)
     text = make_text_encoder(preset, cfg.models)  # queries in the space of the map's embeddings
+    _prefetch("sklearn.cluster")  # HDBSCAN's import (about a second) overlaps reading the map
     mapper = load_map(args.map)
     if getattr(mapper, "field", None) is None:
         raise ValueError(f"{args.map}: the map has no feature field; build it with rg map --supervise --train-field S")
@@ -366,11 +381,20 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="the main job on an embedded default scene")
     p.add_argument("--out", default="rg_demo", help="output folder (default: ./rg_demo)")
     common(p)
-    p.set_defaults(func=cmd_demo)
+    p.set_defaults(func=cmd_demo, human=_demo_human)
     return parser
 
 
-def _print_human(result: dict, file) -> None:
+def _demo_human(result: dict) -> str:
+    from .viz.summary import demo_summary
+
+    return demo_summary(result)
+
+
+def _print_human(result: dict, file, human=None) -> None:
+    if human is not None:
+        print(human(result), file=file)
+        return
     for k, v in result.items():
         print(f"{k}: {v}", file=file)
 
@@ -381,13 +405,13 @@ def main(argv: list[str] | None = None) -> int:
         try:
             cfg = load_config(args.config)
             result, code = args.func(args, cfg), 0
-        except (ConfigError, SceneError, ValueError) as exc:
+        except (ConfigError, BackendError, ValueError) as exc:  # ValueError includes io.images.SceneError
             result, code = {"error": str(exc)}, 2
             print(f"rg {args.command}: error: {exc}", file=sys.stderr)
         if args.json:
             real_stdout.write(json.dumps(result) + "\n")
         elif code == 0:
-            _print_human(result, real_stdout)
+            _print_human(result, real_stdout, getattr(args, "human", None))
     return code
 
 

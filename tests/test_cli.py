@@ -40,6 +40,15 @@ def test_demo_writes_contact_sheet(tmp_path):
             assert a["objects"] and cv2.imread(a["pictures"]["figure"]) is not None
     assert any(a["success"] for a in out["answers"].values()), out["answers"]
     assert (tmp_path / "demo" / "scene.rgmap").is_file()
+    # The human summary (what `rg demo` prints without --json) names what a person needs.
+    from rg_core.viz.summary import demo_summary
+
+    text = demo_summary(out)
+    for a in out["answers"].values():
+        assert repr(a["query"]) in text and (a["target"] or "-") in text
+        if a["success"]:
+            assert a["pictures"]["figure"] in text and "centre (" in text and " m, size " in text
+    assert out["map"] in text
 
 
 def test_errors_are_reported(tmp_path):

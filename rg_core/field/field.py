@@ -49,8 +49,7 @@ class FeatureField:
             torch.manual_seed(c.seed)
             self.language_mlp = ScaleMLP(c.latent_dim, c.language_dim, c.hidden, c.scale_frequencies)
             self.instance_mlp = ScaleMLP(c.latent_dim, c.instance_dim, c.hidden, c.scale_frequencies, unit=True)
-        self.mlp_optim = torch.optim.Adam(list(self.language_mlp.parameters()) + list(self.instance_mlp.parameters()),
-                                          lr=c.lr_mappers)
+        self._mlp_optim = None  # made on the first training step: torch.optim imports torch._dynamo (seconds)
         n = len(mapper.gaussians)
         self.latents = torch.randn(n, c.latent_dim, generator=self._rng) * c.init_std  # [N, D]
         self._m, self._v = torch.zeros(n, c.latent_dim), torch.zeros(n, c.latent_dim)
@@ -63,6 +62,15 @@ class FeatureField:
         self.steps = 0
         self.seconds = 0.0
         mapper.field = self
+
+    @property
+    def mlp_optim(self):
+        """Adam over both mappers' weights, made when training first needs it (a map loaded only to
+        answer queries never does, and a new process saves the seconds torch.optim's import takes)."""
+        if self._mlp_optim is None:
+            self._mlp_optim = torch.optim.Adam(list(self.language_mlp.parameters()) + list(self.instance_mlp.parameters()),
+                                               lr=self.cfg.lr_mappers)
+        return self._mlp_optim
 
     # ---------------------------------------------------------------------------- map following
 

@@ -1,4 +1,4 @@
-"""Axis-aligned and oriented boxes of a Gaussian group (open3d), robust to degenerate groups."""
+"""Axis-aligned and oriented boxes of a Gaussian group (PCA of the hull, as open3d), robust to degenerate groups."""
 from __future__ import annotations
 
 import numpy as np
@@ -50,11 +50,28 @@ def connected_to(points: np.ndarray, anchor: np.ndarray | None, link: float) -> 
     return comp == keep
 
 
+def pca_obb(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """open3d's OrientedBoundingBox.create_from_points in numpy/scipy (open3d costs a new process
+    seconds to import): PCA of the convex hull's vertices, axes by decreasing variance, the hull's
+    extent along them. points [N >= 4, 3] spanning a volume -> (centre [3], R [3, 3], extent [3]).
+    tests/test_boxes.py checks it against open3d."""
+    from scipy.spatial import ConvexHull
+
+    pts = np.asarray(points, np.float64)
+    hull = pts[ConvexHull(pts).vertices]                                          # [H, 3]
+    mean = hull.mean(0)
+    cov = (hull - mean).T @ (hull - mean) / len(hull)
+    evals, R = np.linalg.eigh(cov)                                                # ascending
+    R = R[:, np.argsort(-evals, kind="stable")]
+    R /= np.linalg.norm(R, axis=0, keepdims=True)
+    local = (hull - mean) @ R                                                     # [H, 3] in the box frame
+    lo, hi = local.min(0), local.max(0)
+    return R @ ((lo + hi) / 2) + mean, R, hi - lo
+
+
 def group_boxes(points: np.ndarray):
     """points [N, 3] -> (aabb_min [3], aabb_max [3], obb_center [3], obb_rotation [3, 3], obb_extent [3]).
-    Fewer than 4 points or coplanar points get an axis-aligned OBB (open3d's PCA box needs volume)."""
-    import open3d as o3d
-
+    Fewer than 4 points or coplanar points get an axis-aligned OBB (a PCA box needs volume)."""
     pts = np.asarray(points, np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3 or not len(pts) or not np.isfinite(pts).all():
         raise ValueError(f"group_boxes: need finite points [N >= 1, 3], got {pts.shape}")
@@ -62,13 +79,12 @@ def group_boxes(points: np.ndarray):
     centre, rot, ext = (lo + hi) / 2, np.eye(3), hi - lo
     if len(pts) >= 4 and np.linalg.matrix_rank(pts - pts.mean(0), tol=1e-6) == 3:
         try:
-            obb = o3d.geometry.OrientedBoundingBox.create_from_points(o3d.utility.Vector3dVector(pts))
-            r = np.asarray(obb.R, np.float64)
+            centre, r, ext = pca_obb(pts)
             if np.linalg.det(r) < 0:  # keep a right-handed frame (same box)
                 r = r.copy()
                 r[:, 2] *= -1
-            centre, rot, ext = np.asarray(obb.center, np.float64), r, np.asarray(obb.extent, np.float64)
-        except RuntimeError:
+            rot = r
+        except Exception:  # noqa: BLE001 - qhull's QhullError on (near-)degenerate input: keep the AABB box
             pass
     return lo, hi, centre, rot, ext
 

@@ -63,4 +63,7 @@ def build_grounder(scene, cfg: RGConfig, supervision: str = "default", field_sec
     print(f"grounding ready: {len(mapper.gaussians)} Gaussians, {len(mapper.keyframes)} keyframes, "
           f"{field.steps} field steps", file=sys.stderr)
     names = [o.name for o in scene.objects]
-    return Grounder(mapper, field, cfg, reasoner=reasoner, text_encoder=text, scene_names=names), report
+    grounder = Grounder(mapper, field, cfg, reasoner=reasoner, text_encoder=text, scene_names=names)
+    if mapper.supervision is not None:
+        grounder.store_texts()  # saved with the map: a later `rg ground` embeds only its query
+    return grounder, report

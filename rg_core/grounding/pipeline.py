@@ -16,6 +16,7 @@ from ..config import RGConfig
 from ..geometry.conventions import backproject, pixels_to_points
 from ..render import rasterize
 from .boxes import connected_to, group_boxes, map_spacing, robust_inliers
+from .cache import MapCache
 from .carve import MaskView, mask_votes
 from .grouping import Groups, cluster_instances
 from .relevancy import CANONICAL, relevancy, relevancy_pca
@@ -23,6 +24,22 @@ from .result import GroundedObject, GroundingResult
 from .vocabulary import build_vocabulary, looks_like_name
 
 log = logging.getLogger(__name__)
+
+
+class _threads:
+    """torch.set_num_threads(n) inside a block (n <= 0: leave it), restored after."""
+
+    def __init__(self, n: int):
+        self.n = n
+
+    def __enter__(self):
+        self.old = torch.get_num_threads()
+        if self.n > 0 and self.n != self.old:
+            torch.set_num_threads(self.n)
+
+    def __exit__(self, *exc):
+        if torch.get_num_threads() != self.old:
+            torch.set_num_threads(self.old)
 
 
 class Grounder:
@@ -34,15 +51,23 @@ class Grounder:
     """
 
     def __init__(self, mapper, field, cfg: RGConfig | None = None, reasoner=None, text_encoder=None,
-                 scene_names: list[str] | None = None):
+                 scene_names: list[str] | None = None, cache: bool = True):
+        """cache=False recomputes everything that depends only on the map for every query (the
+        baseline of benchmarks/bench_latency.py and of the cache tests)."""
         self.mapper, self.field, self.cfg = mapper, field, cfg or RGConfig()
         self.gcfg = self.cfg.ground
         self._reasoner, self._text = reasoner, text_encoder
         self.scene_names = list(scene_names or [])
         self._text_cache: dict[str, torch.Tensor] = {}
-        self._groups: dict[tuple, Groups] = {}
-        self._vocab: tuple | None = None
-        self._spacing: tuple | None = None
+        # Clusters per (scale, region), field renders per keyframe, map spacing, vocabulary: valid
+        # while the map and field are unchanged (rg_core/grounding/cache.py says how that is known).
+        self.cache = MapCache(cache)
+        self._outer_threads = 0  # torch's thread count outside ground(): what big work runs with
+        sset = getattr(mapper, "supervision", None)
+        if sset is not None and getattr(sset, "text_embeddings", None):
+            from ..perception.minilm import remember
+
+            remember(sset.text_embeddings)  # the map's stored name embeddings: no text model for them
 
     # ------------------------------------------------------------------------------ models
 
@@ -66,15 +91,57 @@ class Grounder:
                 self._text_cache[t] = torch.nn.functional.normalize(e.float(), dim=-1)
         return torch.stack([self._text_cache[t] for t in texts]) if texts else torch.zeros(0, 1)
 
+    def store_texts(self) -> int:
+        """Embed the texts a query on this map needs besides the query itself (household, scene and
+        configured names, their reasoner prompt form, the reasoner's background names, the canonical
+        phrases) with MiniLM and keep them in the map's supervision: save_map then stores them, and
+        a new process answers a query naming one of them without loading the text model. -> count."""
+        from ..perception import reasoner as rmod
+        from ..perception.embed import MiniLMText
+        from .vocabulary import HOUSEHOLD
+
+        sset = self.mapper.supervision
+        if sset is None:
+            raise ValueError("store_texts: the map has no supervision yet")
+        template = getattr(rmod, "NAME_TEMPLATE", "{}")
+        names = list(dict.fromkeys(list(self.scene_names) + list(self.gcfg.vocabulary) + list(HOUSEHOLD)
+                                   + list(self.cfg.reason.extra_vocabulary)))
+        background = getattr(rmod, "_background_names", lambda: [])()
+        texts = list(dict.fromkeys(names + [template.format(n) for n in names + list(background)]
+                                   + list(CANONICAL)))
+        enc = self._text if isinstance(self._text, MiniLMText) else MiniLMText()
+        sset.text_embeddings = dict(zip(texts, enc(texts)))
+        return len(texts)
+
     def vocabulary(self) -> list[str]:
+        self._check_cache()
         sset = self.mapper.supervision
         n_masks = sum(len(s.embeddings) for s in sset.by_keyframe.values()) if sset is not None else 0
-        key = (n_masks, tuple(self.scene_names), tuple(self.gcfg.vocabulary))
-        if self._vocab is None or self._vocab[0] != key:
+        key = (n_masks, tuple(self.scene_names), tuple(self.gcfg.vocabulary), bool(self.gcfg.support_vocabulary))
+
+        def make():
             emb = torch.cat([s.embeddings for s in sset.by_keyframe.values()]) if n_masks else torch.zeros(0, 1)
-            self._vocab = (key, build_vocabulary(self.scene_names, self.gcfg.vocabulary, emb, self.encode,
-                                                 self.gcfg.support_vocabulary))
-        return list(self._vocab[1])
+            return build_vocabulary(self.scene_names, self.gcfg.vocabulary, emb, self.encode,
+                                    self.gcfg.support_vocabulary)
+        return list(self.cache.get("vocabulary", key, make))
+
+    def _check_cache(self) -> None:
+        """Empty the map caches when the map, its supervision or the field changed since they were filled."""
+        m, f = self.mapper, self.field
+        g = m.gaussians
+        tensors = (g.means, g.log_scales, g.quats, g.opacity_logits)
+        sset = m.supervision
+        counters = (len(g), m.frames_seen, len(m.keyframes), id(sset))
+        if sset is not None:
+            counters += (len(sset.by_keyframe), sum(len(s.embeddings) for s in sset.by_keyframe.values()),
+                         getattr(sset.pca, "version", None), id(sset.pca.pca))
+        if f is not None:
+            if len(f.latents) != len(g):
+                f.sync()  # latents follow Gaussians added or pruned since the last training step
+            tensors += (f.latents,)
+            counters += (id(f), f.steps, f._pca[0] if getattr(f, "_pca", None) is not None else None,
+                         id(f.scale_tf))
+        self.cache.check(tensors, counters)
 
     # ------------------------------------------------------------------------------ checks
 
@@ -143,12 +210,14 @@ class Grounder:
         """Clusters of instance features at one scale, over the Gaussians in `region` (bool [N];
         None: all); cached until the map, the field or the region changes. Gaussians outside the
         region are left out: label -1 and a zero feature, so they never join a group."""
+        self._check_cache()
         N = len(self.mapper.gaussians)
-        rkey = None if region is None else hash(np.packbits(region).tobytes())
-        key = (round(scale, 4), N, self.field.steps, rkey)
-        if key not in self._groups:
+        key = (round(scale, 4), N, None if region is None else np.packbits(region).tobytes())
+
+        def make() -> Groups:
             g = self.gcfg
-            feats = self.field.gaussian_instance(scale)                         # [N, Di]
+            with _threads(self._outer_threads):
+                feats = self.field.gaussian_instance(scale)                     # [N, Di]
             if region is None:
                 out = cluster_instances(feats, g.max_cluster_points, g.min_cluster_size, g.cluster_eps,
                                         seed=g.seed, method=g.cluster_method)
@@ -161,8 +230,8 @@ class Grounder:
                 full = torch.zeros_like(feats)
                 full[torch.from_numpy(idx)] = sub.features
                 out = Groups(labels, sub.centres, sub.clustered, sub.seconds, sub.radius, full)
-            self._groups = {key: out}
-        return self._groups[key]
+            return out
+        return self.cache.get("groups", key, make)
 
     def region(self, kf, mask: np.ndarray, depth: torch.Tensor, alpha: torch.Tensor, scale: float) -> np.ndarray | None:
         """Gaussians that can belong to the reference mask's object: within `region_scales` x s* of
@@ -178,17 +247,30 @@ class Grounder:
         return (d <= self.gcfg.region_scales * max(scale, 1e-3)).numpy()
 
     def spacing(self) -> float:
-        """The map's median nearest-neighbour distance between Gaussians (m), cached per map state."""
-        m = self.mapper
-        key = (len(m.gaussians), m.frames_seen, self.field.steps if self.field is not None else 0)
-        if self._spacing is None or self._spacing[0] != key:
-            self._spacing = (key, map_spacing(m.gaussians.means.detach().numpy(), seed=self.gcfg.seed))
-        return self._spacing[1]
+        """The map's median nearest-neighbour distance between Gaussians (m), cached until the map
+        changes (idle refinement moves Gaussians too: see rg_core/grounding/cache.py)."""
+        self._check_cache()
+        return self.cache.get("spacing", self.gcfg.seed,
+                              lambda: map_spacing(self.mapper.gaussians.means.detach().numpy(), seed=self.gcfg.seed))
+
+    def render_keyframe(self, kf):
+        """The field rendered from a keyframe (latent, colour, depth, alpha), cached per keyframe."""
+        self._check_cache()
+        w, h = kf.size
+        def make():
+            with _threads(self._outer_threads):
+                return self.field.render(kf.K, kf.cam_to_world, w, h)
+        return self.cache.get("renders", (kf.index, w, h), make)
 
     def _decompress(self, z: torch.Tensor) -> torch.Tensor:  # [..., k] -> [..., D]
         return self.mapper.supervision.pca.pca.inverse(z)
 
     def ground(self, query: str, mode: str = "auto", max_results: int = 1) -> GroundingResult:
+        self._outer_threads = torch.get_num_threads()
+        with _threads(self.gcfg.query_threads):
+            return self._ground(query, mode, max_results)
+
+    def _ground(self, query: str, mode: str, max_results: int) -> GroundingResult:
         t = {}
         t0 = time.perf_counter()
         bad = self._check_query(query)
@@ -201,6 +283,7 @@ class Grounder:
         not_ready = self._not_ready()
         if not_ready:
             return GroundingResult(False, not_ready, query=query)
+        self._check_cache()
 
         vocab = self.vocabulary()
         if mode != "implicit" and looks_like_name(query) and query.strip() not in vocab:
@@ -227,16 +310,27 @@ class Grounder:
 
         t2 = time.perf_counter()
         w, h = kf.size
-        rel, fr = self.relevancy_view(r.target, scale, kf.K, kf.cam_to_world, w, h)
+        fr = self.render_keyframe(kf)
         canon = self.encode(list(CANONICAL))
         # Features bleed a pixel or two over object borders: take the peak of the 3x3 mean, and
         # inside the reference mask (the 2D evidence that chose s*) when it has rendered pixels.
-        smooth = torch.nn.functional.avg_pool2d(rel[None, None], 3, 1, 1, count_include_pad=False)[0, 0]
+        # Relevancy is computed only over the mask's box grown by 2 pixels (the 3x3 mean of a mask
+        # pixel reads nothing beyond): the same peak as over the whole view, in a fraction of the time.
         ref_mask = torch.from_numpy(self.mapper.supervision.by_keyframe[kf.index].masks[mi])
-        if ref_mask.shape == smooth.shape and bool((ref_mask & (fr.alpha > self.gcfg.mask_alpha)).any()):
-            smooth = torch.where(ref_mask, smooth, torch.full_like(smooth, -1.0))
+        in_mask = ref_mask.shape == (h, w) and bool((ref_mask & (fr.alpha > self.gcfg.mask_alpha)).any())
+        y0, y1, x0, x1 = 0, h, 0, w
+        if in_mask:
+            ys, xs = torch.nonzero(ref_mask, as_tuple=True)
+            y0, y1 = max(int(ys.min()) - 2, 0), min(int(ys.max()) + 3, h)
+            x0, x1 = max(int(xs.min()) - 2, 0), min(int(xs.max()) + 3, w)
+        rel = self._relevancy(fr, r.target, scale, (slice(y0, y1), slice(x0, x1)))  # [y1-y0, x1-x0]
+        smooth = torch.nn.functional.avg_pool2d(rel[None, None], 3, 1, 1, count_include_pad=False)[0, 0]
+        if in_mask:
+            smooth = torch.where(ref_mask[y0:y1, x0:x1], smooth, torch.full_like(smooth, -1.0))
         peak = int(smooth.reshape(-1).argmax())
-        py, px = divmod(peak, w)
+        py, px = divmod(peak, x1 - x0)
+        peak_rel = float(rel[py, px])
+        py, px = py + y0, px + x0
         q_inst = self.field.instance(fr.latent[py, px], scale)                # [Di]
         t["relevancy"] = time.perf_counter() - t2
 
@@ -257,7 +351,6 @@ class Grounder:
             chosen = self._more_instances(groups, order, target, canon, scale, max_results)
         g = self.mapper.gaussians
         means, colors = g.means.detach().numpy(), (g.colors.detach().clamp(0, 1) * 255).round().byte().numpy()
-        peak_rel = float(rel[py, px])
         found = []
         if home < 0:
             # The most relevant pixel's feature lies in no cluster: HDBSCAN left that object as noise.
@@ -323,10 +416,16 @@ class Grounder:
         """Relevancy [h, w] of `target` at `scale` from any camera (0 where the map is not opaque),
         and the field render it came from."""
         fr = self.field.render(K, cam_to_world, width, height)
+        return self._relevancy(fr, target, scale), fr
+
+    def _relevancy(self, fr, target: str, scale: float, window=(slice(None), slice(None))) -> torch.Tensor:
+        """Relevancy of `target` over a window (rows, cols slices) of a field render: [h', w'],
+        0 where the map is not opaque."""
         pca = self.mapper.supervision.pca.pca
-        rel = relevancy_pca(self.field.language(fr.latent, scale), pca.components, pca.mean,   # [h, w]
+        alpha = fr.alpha[window]
+        rel = relevancy_pca(self.field.language(fr.latent[window], scale), pca.components, pca.mean,
                             self.encode([target])[0], self.encode(list(CANONICAL)))
-        return torch.where(fr.alpha > self.gcfg.mask_alpha, rel, torch.zeros_like(rel)), fr
+        return torch.where(alpha > self.gcfg.mask_alpha, rel, torch.zeros_like(rel))
 
     def _more_instances(self, groups: Groups, order: list[int], target, canon, scale, k: int) -> list[int]:
         """Other groups as relevant as the best one ("the cups"): relevancy of each group's mean latent."""

