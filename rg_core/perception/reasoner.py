@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 # Fit on the tune half of the description set (benchmarks/bench_reasoning.py --fit; provenance in
 # rg_core/config.py ReasonConfig): weight of name similarity against gloss similarity, the floor
 # under the best text score, the background margin, and when a background name counts as a synonym.
-FIT = {"name_weight": 0.5, "min_similarity": 0.0, "absent_margin": -0.025, "background_exclude": 0.5,
+FIT = {"name_weight": 0.5, "min_similarity": 0.0, "absent_margin": 0.35, "background_exclude": 0.6,
        "prior_trust": 0.4}
 
 MODES = ("auto", "explicit", "implicit")
@@ -436,10 +436,27 @@ def make_reasoner(name: str = "text", **kwargs) -> Reasoner:
     return _REGISTRY[name](**kwargs)
 
 
+def llm_scorer_from_config(cfg) -> dict:
+    """{"llm_scorer": scorer} or {} with the reason logged: a missing runner or model leaves the
+    text reasoner answering on text evidence alone."""
+    try:
+        from .llm_scorer import LLMChoiceScorer
+
+        return {"llm_scorer": LLMChoiceScorer(model_path=cfg.llm_model_path or None)}
+    except Exception as exc:  # noqa: BLE001 - ImportError, BackendError, a corrupt model file
+        log.warning("LLM scorer unavailable, text evidence only: %s: %s", type(exc).__name__, exc)
+        return {}
+
+
 def reasoner_from_config(cfg) -> Reasoner:
     """Build the reasoner a ReasonConfig (rg_core.config) describes."""
     text = dict(top_k=cfg.top_k, min_similarity=cfg.min_similarity, absent_margin=cfg.absent_margin,
-                max_query_chars=cfg.max_query_chars, extra_vocabulary=list(cfg.extra_vocabulary))
+                max_query_chars=cfg.max_query_chars, extra_vocabulary=list(cfg.extra_vocabulary),
+                name_weight=cfg.name_weight, background_exclude=cfg.background_exclude,
+                use_knowledge=cfg.use_knowledge, knowledge_path=cfg.knowledge_path, domain_prior=cfg.domain_prior,
+                prior_trust=cfg.prior_trust, cache_dir=cfg.cache_dir)
+    if cfg.backend == "text" and cfg.llm_scorer and cfg.llm_weight:
+        text.update(llm_scorer_from_config(cfg), llm_weight=cfg.llm_weight)
     if cfg.backend == "text":
         return make_reasoner("text", **text)
     fallback = TextReasoner(**text)
