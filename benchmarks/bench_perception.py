@@ -3,7 +3,8 @@ RGB-D generator; name top-1 of the offline ConSE embedder on ground-truth masks,
 multi-view aggregation through the map, against plain ConSE (no colour term)
 measured in the same run, and with the optional mirror averaging; the same on real YCB photos.
 
-    python benchmarks/bench_perception.py [--views 20] [--seeds 1 2 3] [--json]
+    python benchmarks/bench_perception.py [--views 20] [--seeds 1 2 3] [--json] [--no-mirror]
+        [--class-text gloss both]
 """
 from __future__ import annotations
 
@@ -143,6 +144,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     ap.add_argument("--out", default=str(ROOT / "bench_out" / "perception"))
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--no-mirror", action="store_true", help="leave out the mirror-averaging variant (half the time)")
+    ap.add_argument("--class-text", nargs="*", default=["gloss", "both"], choices=["gloss", "both"],
+                    help="ConSE variants whose ImageNet classes are embedded by WordNet knowledge text")
     a = ap.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -153,12 +157,17 @@ def main(argv=None) -> int:
     embedder = make_embedder("conse")
     # Baseline in the same run: plain ConSE (no colour term); and the optional mirror averaging.
     plain = make_embedder("conse", colour_weight=0.0)
-    mirror = make_embedder("conse", mirror=True)
+    variants = {"conse": embedder, "conse_plain": plain}
+    if not a.no_mirror:
+        variants["conse_mirror"] = make_embedder("conse", mirror=True)
+    # Issue 15: ImageNet classes embedded by their WordNet knowledge text (and name + gloss).
+    for ct in a.class_text:
+        variants[f"conse_{ct}"] = make_embedder("conse", class_text=ct)
     t = time.perf_counter()
-    conse = conse_section(scenes, {"conse": embedder, "conse_plain": plain, "conse_mirror": mirror})
+    conse = conse_section(scenes, variants)
     res = {"scenes": f"{len(scenes)} x {a.views} views, 320x240, 7 objects, seeds {a.seeds}",
            "masks": masks_section(scenes), **conse, "seconds_conse_section": round(time.perf_counter() - t, 1),
-           "ycb": ycb_section(embedder), "ycb_plain": ycb_section(plain), "ycb_mirror": ycb_section(mirror)}
+           **{f"ycb{k[5:]}": ycb_section(e) for k, e in variants.items()}}
     print(json.dumps(res, indent=None if a.json else 1))
     return 0
 

