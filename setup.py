@@ -20,6 +20,8 @@ setup(
     license="Apache-2.0",
     python_requires=">=3.10",
     packages=find_packages(include=["rg_core", "rg_core.*", "rg_ros", "rg_ros.*"]),
+    # Data files inside rg_core (the reasoning benchmark's description set, issue 15).
+    package_data={"rg_core": ["perception/data/*.json"]},
     install_requires=_requirements("requirements.txt"),
     extras_require={"test": _requirements("requirements-test.txt")},
     data_files=[
