@@ -1,5 +1,10 @@
 """Reasoning backends: a query (+ optional reference image) -> the name of the target object.
 
+Issue 15 (2026-11-24): the text reasoner now also compares the query with each name's WordNet
+knowledge text, rejects with a logistic open-set prior, and takes an optional LLM term; its
+weights and thresholds (FIT below) come from the tune half of the description set
+(benchmarks/bench_reasoning.py). The history below is how the name-only version was tuned.
+
 ReasonGrounder hands implicit queries ("something to drink hot tea from") to an LVLM that names
 the object; the name is then grounded in the feature field. The offline default "text" replaces
 the LVLM with the packaged sentence model (MiniLM): the nearest vocabulary name wins. Explicit
