@@ -15,6 +15,8 @@ import sys
 import time
 from pathlib import Path
 
+from .publish_util import flush_publishers, wait_for_subscribers
+
 
 def message_class(msgtype: str):
     """'sensor_msgs/msg/Image' -> sensor_msgs.msg.Image (ImportError names what is missing)."""
@@ -72,9 +74,7 @@ def replay_bag(args, ros_argv: list[str]) -> int:
             pubs[c.topic] = node.create_publisher(classes[c.topic], c.topic, qos)
         log = node.get_logger()
         sent = passes = 0
-        t_end = time.monotonic() + args.wait
-        while time.monotonic() < t_end and any(p.get_subscription_count() == 0 for p in pubs.values()):
-            time.sleep(0.05)
+        wait_for_subscribers(list(pubs.values()), args.wait)
         duration_ns = max(reader.duration, 1)
         try:
             while True:
@@ -104,7 +104,7 @@ def replay_bag(args, ros_argv: list[str]) -> int:
             return 2
         finally:
             log.info(f"published {sent} messages from {path} ({passes} passes)")
-            time.sleep(0.3)   # let the last messages leave
+            flush_publishers(list(pubs.values()))
             node.destroy_node()
             rclpy.try_shutdown()
     finally:

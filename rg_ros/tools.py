@@ -13,6 +13,7 @@ import sys
 import time
 
 from .node import NODE_NAME, NodeParams
+from .publish_util import flush_publishers, wait_for_subscribers
 
 
 def _split_ros_args(argv: list[str] | None) -> tuple[list[str], list[str]]:
@@ -196,9 +197,7 @@ def replay_main(argv: list[str] | None = None) -> int:
     log = node.get_logger()
     sent = 0
     try:
-        t_end = time.monotonic() + args.wait
-        while time.monotonic() < t_end and any(p.get_subscription_count() == 0 for p in pubs):
-            time.sleep(0.05)
+        wait_for_subscribers(pubs, args.wait)
         period = 1.0 / args.rate
         next_t = time.monotonic()
         while True:
@@ -219,7 +218,7 @@ def replay_main(argv: list[str] | None = None) -> int:
         pass
     finally:
         log.info(f"published {sent} frames from {args.scene}")
-        time.sleep(0.2)   # let the last messages leave
+        flush_publishers(pubs + ([tf_pub] if tf_pub is not None else []))
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
