@@ -104,7 +104,9 @@ class BagHarness:
         return res
 
     def replay(self, bag, *extra):
-        return subprocess.run([sys.executable, "-m", "rg_ros.tools", "replay", str(bag), *extra],
+        # discovery of a new process can take seconds on a loaded CPU: wait up to 30 s for the subscribers
+        wait = () if "--wait" in extra else ("--wait", "30")
+        return subprocess.run([sys.executable, "-m", "rg_ros.tools", "replay", str(bag), *wait, *extra],
                               env=dict(os.environ), capture_output=True, text=True, timeout=120)
 
     def node_log(self):
