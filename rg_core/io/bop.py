@@ -107,6 +107,10 @@ class BopScene(Scene):
     models: dict[int, Path] = field(default_factory=dict)  # obj_id -> model PLY (mm)
     bop: dict = field(default_factory=dict)                # how the scene was read (poses source, anchor)
 
+    @property
+    def frames(self) -> list[Frame]:  # one image alone is both train and test view: listed once
+        return sorted({f.index: f for f in self.train + self.test}.values(), key=lambda f: f.index)
+
 
 def is_bop(root: str | Path) -> bool:
     root = Path(root)
