@@ -245,3 +245,22 @@ def test_rg_map_on_bop_folder(ycbv, tmp_path):
     assert 0 < out["gaussians"] <= 5000 and out["test"]["psnr"] > 12
     assert out["test"]["depth_abs_error_median_m"] < 0.05
     assert (tmp_path / "m.rgmap").is_file()
+
+
+def test_rg_eval_with_own_queries_on_bop(ycbv, tmp_path):
+    """`rg eval --queries` runs exactly the file's queries on the BOP test views and reports the
+    per-object figures and the amodal unseen fraction (a tiny map: the figures are not checked)."""
+    r = run_rg("map", str(ycbv), "--out", str(tmp_path / "m.rgmap"), "--width", "80", "--iters-per-keyframe", "1",
+               "--max-gaussians", "2000", "--json", "--quiet")
+    assert r.returncode == 0, r.stderr
+    q = tmp_path / "q.json"
+    q.write_text(json.dumps([{"object_id": 10, "explicit": "banana", "implicit": ["a curved yellow fruit"]}]))
+    r = run_rg("eval", str(ycbv), "--map", str(tmp_path / "m.rgmap"), "--queries", str(q), "--supervision", "oracle",
+               "--field-seconds", "0", "--json", "--quiet")
+    assert r.returncode == 0, r.stderr
+    ev = json.loads(r.stdout)["eval"]
+    assert ev["explicit"]["queries"] == 1 and ev["implicit"]["queries"] == 1
+    assert ev["explicit"]["pairs"] == 3  # the banana is visible in the 3 test views
+    assert set(ev["per_object"]) == {"banana"} and set(ev["box_iou"]["per_object"]) == {"banana"}
+    assert ev["amodal_unseen"]["banana"]["unseen_fraction"] < 0.05
+    assert ev["amodal_unseen"]["wood block"]["unseen_fraction"] > 0.25
