@@ -236,8 +236,14 @@ def test_amodal_coverage_on_one_viewpoint(scene):
     assert cov["banana"]["unseen_fraction"] < 0.03
 
 
+def fast_config(tmp_path) -> str:
+    cfg = tmp_path / "fast.yaml"
+    cfg.write_text("map:\n  final_iters: 30\n")
+    return str(cfg)
+
+
 def test_rg_map_on_bop_folder(ycbv, tmp_path):
-    r = run_rg("map", str(ycbv), "--out", str(tmp_path / "m.rgmap"), "--width", "160",
+    r = run_rg("--config", fast_config(tmp_path), "map", str(ycbv), "--out", str(tmp_path / "m.rgmap"), "--width", "160",
                "--iters-per-keyframe", "2", "--max-gaussians", "5000", "--json", "--quiet")
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
@@ -250,7 +256,7 @@ def test_rg_map_on_bop_folder(ycbv, tmp_path):
 def test_rg_eval_with_own_queries_on_bop(ycbv, tmp_path):
     """`rg eval --queries` runs exactly the file's queries on the BOP test views and reports the
     per-object figures and the amodal unseen fraction (a tiny map: the figures are not checked)."""
-    r = run_rg("map", str(ycbv), "--out", str(tmp_path / "m.rgmap"), "--width", "80", "--iters-per-keyframe", "1",
+    r = run_rg("--config", fast_config(tmp_path), "map", str(ycbv), "--out", str(tmp_path / "m.rgmap"), "--width", "80", "--iters-per-keyframe", "1",
                "--max-gaussians", "2000", "--json", "--quiet")
     assert r.returncode == 0, r.stderr
     q = tmp_path / "q.json"
