@@ -270,3 +270,10 @@ def test_rg_eval_with_own_queries_on_bop(ycbv, tmp_path):
     assert set(ev["per_object"]) == {"banana"} and set(ev["box_iou"]["per_object"]) == {"banana"}
     assert ev["amodal_unseen"]["banana"]["unseen_fraction"] < 0.05
     assert ev["amodal_unseen"]["wood block"]["unseen_fraction"] > 0.25
+
+
+def test_near_static_camera_config_loads():
+    from rg_core.config import load_config
+
+    cfg = load_config(Path(__file__).resolve().parents[1] / "config" / "near_static_camera.yaml")
+    assert cfg.map.kf_new_fraction == 0.0 and cfg.map.kf_photo_error == 0.0
