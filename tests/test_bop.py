@@ -277,3 +277,11 @@ def test_near_static_camera_config_loads():
 
     cfg = load_config(Path(__file__).resolve().parents[1] / "config" / "near_static_camera.yaml")
     assert cfg.map.kf_new_fraction == 0.0 and cfg.map.kf_photo_error == 0.0
+
+
+def test_rg_report_accepts_a_bop_folder(ycbv, tmp_path):
+    r = run_rg("report", str(ycbv), "--out", str(tmp_path / "rep"), "--tiny", "--sections", "mapping", "--json", "--quiet")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["failed_sections"] == [] and out["headline"]["mapping"][0]["PSNR dB"] > 15
+    assert (tmp_path / "rep" / "report.md").is_file()
