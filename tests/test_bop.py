@@ -285,3 +285,19 @@ def test_rg_report_accepts_a_bop_folder(ycbv, tmp_path):
     out = json.loads(r.stdout)
     assert out["failed_sections"] == [] and out["headline"]["mapping"][0]["PSNR dB"] > 15
     assert (tmp_path / "rep" / "report.md").is_file()
+
+
+def test_pca_fits_a_one_keyframe_supervision():
+    """One keyframe of ycbv_0002 under oracle supervision has 7 masks, below the incremental PCA's
+    8: a finished supervision set fits on what it has (else the field never trains)."""
+    import torch
+
+    from rg_core.perception.pca import IncrementalPCA
+
+    p = IncrementalPCA(k=64)
+    x = torch.randn(7, 384)
+    assert not p.add(x) and p.pca is None
+    assert p.fit_now() and p.pca is not None and not p.fit_now()
+    back = p.pca.inverse(p.pca.transform(x))
+    assert torch.allclose(back, x, atol=1e-4)  # 7 rows span at most 7 dimensions: kept exactly
+    assert not IncrementalPCA().fit_now()  # nothing to fit
