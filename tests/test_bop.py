@@ -301,3 +301,18 @@ def test_pca_fits_a_one_keyframe_supervision():
     back = p.pca.inverse(p.pca.transform(x))
     assert torch.allclose(back, x, atol=1e-4)  # 7 rows span at most 7 dimensions: kept exactly
     assert not IncrementalPCA().fit_now()  # nothing to fit
+
+
+def test_names_without_obj_names_json(ycbv, tmp_path):
+    """No obj_names.json and no names in models_info.json: BOP's YCB-V list by id, or 'object N'."""
+    root = copy_bop(ycbv, tmp_path / "s", [1, 2])
+    (root / "obj_names.json").unlink()
+    (root / "models").unlink()
+    (root / "models").mkdir()
+    for p in (ycbv / "models").glob("obj_*.ply"):
+        (root / "models" / p.name).symlink_to(p)
+    assert {o.id: o.name for o in read_bop(root).objects} == NAMES
+    assert {o.name for o in read_bop(root, BopOptions(fallback_names="")).objects} == {f"object {i}" for i in NAMES}
+    (root / "models" / "obj_000010.ply").unlink()
+    with pytest.raises(SceneError, match=r"models/obj_000010\.ply: file not found"):
+        read_bop(root)
