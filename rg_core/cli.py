@@ -267,7 +267,7 @@ def cmd_eval(args, cfg) -> dict:
         print(f"rg eval: {exc}; implicit queries use reason.backend {cfg.reason.backend!r}", file=sys.stderr)
     scene = read_scene(args.scene)
     if args.queries:  # anyone's own explicit and implicit queries, in the scene's queries.json format
-        from .io.bop import read_queries
+        from .io.queries import read_queries
 
         scene.queries = read_queries(args.queries, scene.objects)
     if not scene.queries or not scene.objects:

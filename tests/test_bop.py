@@ -11,7 +11,8 @@ import cv2
 import numpy as np
 import pytest
 
-from rg_core.io.bop import BopOptions, read_bop, read_queries
+from rg_core.io.bop import BopOptions, read_bop
+from rg_core.io.queries import read_queries
 from rg_core.io.captures import read_scene
 from rg_core.io.images import SceneError
 

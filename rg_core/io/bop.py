@@ -19,7 +19,6 @@ refused (or read one image alone with `BopOptions.single_image`).
 """
 from __future__ import annotations
 
-import json
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,7 +27,8 @@ import numpy as np
 
 from ..geometry.conventions import PoseError, check_rigid
 from .images import SceneError, read_mask
-from .scene import Frame, Intrinsics, Query, Scene, SceneObject
+from .queries import default_queries, description_categories
+from .scene import Frame, Intrinsics, Scene, SceneObject, _load_json
 
 # BOP's YCB-V object ids 1..21 (the 21 YCB-Video classes, in YCB-Video's own order).
 YCBV_NAMES = ("002_master_chef_can", "003_cracker_box", "004_sugar_box", "005_tomato_soup_can",
@@ -121,15 +121,6 @@ def ycb_name(raw: str) -> str:
     """'006_mustard_bottle' -> 'mustard bottle'."""
     parts = raw.strip().split("_")
     return " ".join(parts[1:] if parts[0].isdigit() else parts)
-
-
-def _load_json(path: Path):
-    if not path.is_file():
-        raise SceneError(f"{path}: file not found")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise SceneError(f"{path}: not valid JSON ({exc})") from exc
 
 
 def _image_size(path: Path) -> tuple[int, int]:
@@ -376,7 +367,7 @@ def read_bop(root: str | Path, options: BopOptions | None = None) -> BopScene:
 
     models, objects = {}, []
     mdir = _models_dir(root)
-    cats = _description_categories()
+    cats = description_categories()
     for o in ids:
         path = mdir / f"obj_{o:06d}.ply"
         verts, _ = read_ply_mesh(path)  # [N, 3] mm, model frame
@@ -393,52 +384,3 @@ def read_bop(root: str | Path, options: BopOptions | None = None) -> BopScene:
         test = [f for k, f in enumerate(frames) if n > 0 and k % n == 0]
     return BopScene(root=root, train=train, test=test, objects=objects,
                     queries=default_queries(objects), kind="bop", models=models, bop=read_info)
-
-
-def _description_categories() -> dict[str, str]:
-    return {o["name"]: o.get("category", "object") for o in _descriptions().get("objects", [])}
-
-
-def _descriptions() -> dict:
-    path = Path(__file__).resolve().parents[1] / "perception" / "data" / "descriptions.json"
-    return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
-
-
-def default_queries(objects: list[SceneObject]) -> list[Query]:
-    """Explicit query = the object's name; implicit ones = the team's description set (issue 15)
-    for that name, in the set's order (none when the set does not cover the object)."""
-    desc = {o["name"]: [d["text"] for d in o["descriptions"]] for o in _descriptions().get("objects", [])}
-    return [Query(o.id, o.name, desc.get(o.name, [])) for o in objects]
-
-
-def read_queries(path: str | Path, objects: list[SceneObject]) -> list[Query]:
-    """A queries.json file ([{"object_id", "explicit", "implicit": [...]}], as synthetic scenes
-    write it; "object": NAME may replace object_id) checked against the scene's objects."""
-    path = Path(path)
-    data = _load_json(path)
-    if not isinstance(data, list):
-        raise SceneError(f"{path}: expected a JSON list of queries, got {type(data).__name__}")
-    by_name = {o.name: o.id for o in objects}
-    ids = {o.id for o in objects}
-    out = []
-    for k, q in enumerate(data):
-        where = f"{path}: query {k}"
-        if not isinstance(q, dict):
-            raise SceneError(f"{where}: expected an object with object_id, explicit, implicit")
-        oid = q.get("object_id")
-        if oid is None and "object" in q:
-            if q["object"] not in by_name:
-                raise SceneError(f"{where}: object {q['object']!r} is not in the scene ({sorted(by_name)})")
-            oid = by_name[q["object"]]
-        if not isinstance(oid, int) or oid not in ids:
-            raise SceneError(f"{where}: object_id {oid!r} is not an object of the scene ({sorted(ids)})")
-        explicit = q.get("explicit", next(o.name for o in objects if o.id == oid))
-        implicit = q.get("implicit", [])
-        if isinstance(implicit, str):
-            implicit = [implicit]
-        if not isinstance(explicit, str) or not all(isinstance(t, str) for t in implicit):
-            raise SceneError(f"{where}: explicit must be a string and implicit a list of strings")
-        out.append(Query(oid, explicit, list(implicit)))
-    if not out:
-        raise SceneError(f"{path}: no queries")
-    return out
