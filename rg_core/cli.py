@@ -266,8 +266,13 @@ def cmd_eval(args, cfg) -> dict:
     except ModelMissingError as exc:
         print(f"rg eval: {exc}; implicit queries use reason.backend {cfg.reason.backend!r}", file=sys.stderr)
     scene = read_scene(args.scene)
+    if args.queries:  # anyone's own explicit and implicit queries, in the scene's queries.json format
+        from .io.queries import read_queries
+
+        scene.queries = read_queries(args.queries, scene.objects)
     if not scene.queries or not scene.objects:
-        raise ValueError(f"{args.scene}: rg eval needs queries.json and objects.json (a ReasoningGD scene)")
+        raise ValueError(f"{args.scene}: rg eval needs ground-truth objects and queries (a ReasoningGD scene with "
+                         "objects.json and queries.json, or a BOP scene; --queries FILE gives queries)")
     mapper = load_map(args.map) if args.map else None
     if mapper is not None and args.supervision == "oracle":
         mapper.field = None  # a map's own field was trained on its own supervision
@@ -275,6 +280,10 @@ def cmd_eval(args, cfg) -> dict:
     grounder, report = build_grounder(scene, cfg, args.supervision, args.field_seconds, mapper, progress=not args.quiet)
     report["seconds_build"] = round(time.perf_counter() - t, 3)
     report["eval"] = evaluate_queries(grounder, scene, args.implicit, progress=not args.quiet, ablation=args.ablation)
+    if scene.kind == "bop":  # how much of each amodal mask no training view saw (one viewpoint hides parts)
+        from .eval.amodal_coverage import amodal_coverage
+
+        report["eval"]["amodal_unseen"] = amodal_coverage(scene)
     report["supervision_kind"] = args.supervision
     return report
 
@@ -319,7 +328,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_synth)
 
     p = sub.add_parser("map", help="build a Gaussian map from a scene's training frames, evaluate on test views")
-    p.add_argument("scene", help="ReasoningGD scene folder, real capture folder or ROS 2 bag (.mcap, .db3, folder)")
+    p.add_argument("scene", help="ReasoningGD scene folder, real capture folder, BOP scene folder or ROS 2 bag "
+                                  "(.mcap, .db3, folder)")
     p.add_argument("--out", required=True, help="map file to write (e.g. scene.rgmap)")
     p.add_argument("--max-gaussians", type=_positive)
     p.add_argument("--iters-per-keyframe", type=int)
@@ -349,8 +359,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_ground)
 
     p = sub.add_parser("eval", help="run queries.json on the test views: mIoU, localization, box IoU, timings")
-    p.add_argument("scene", help="ReasoningGD scene folder")
+    p.add_argument("scene", help="ReasoningGD or BOP scene folder (BOP: scene_camera.json + scene_gt.json)")
     p.add_argument("--map", help="map file (default: build one from the scene)")
+    p.add_argument("--queries", help="queries.json-format file [{object_id, explicit, implicit: [...]}] "
+                                     "(default: the scene's queries.json; BOP: object names + the description set)")
     p.add_argument("--supervision", default="default", choices=("default", "oracle"))
     p.add_argument("--field-seconds", type=float, help="feature-training budget (default: config field.seconds)")
     p.add_argument("--implicit", type=int, default=1, help="implicit queries per object (default 1)")
@@ -360,7 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("report", help="error against run time, savings, scaling, stability: DIR/report.md + PNGs")
-    p.add_argument("scene", help="ReasoningGD scene folder (objects.json and queries.json for grounding)")
+    p.add_argument("scene", help="ReasoningGD scene folder (objects.json and queries.json for grounding) or BOP scene")
     p.add_argument("--out", required=True, help="output folder (report.md, report.json, plots/)")
     p.add_argument("--tiny", action="store_true", help="seconds-long budgets (what the test suite runs)")
     p.add_argument("--sections", help="comma-separated subset of mapping,grounding,latency,memory,savings,"

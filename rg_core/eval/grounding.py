@@ -116,6 +116,13 @@ def summarise(rows: list[dict]) -> dict:
     for r in rows:
         if r["kind"] == "explicit":
             per_obj[r["object"]] = r["box_iou"]
+    per_obj_masks: dict[str, list] = {}
+    for r in rows:
+        per_obj_masks.setdefault(r["object"], []).append(r)
+    out["per_object"] = {k: {"pairs": len(rs), "miou_visible": round(100 * float(np.mean([r["iou_visible"] for r in rs])), 2),
+                             "miou_amodal": round(100 * float(np.mean([r["iou_amodal"] for r in rs])), 2),
+                             "localization": round(100 * float(np.mean([r["localized"] for r in rs])), 2)}
+                         for k, rs in per_obj_masks.items()}
     out["box_iou"] = {"per_object": {k: round(v, 3) for k, v in per_obj.items()},
                       "share_at_0.5": round(float(np.mean([v >= 0.5 for v in per_obj.values()])), 3) if per_obj else 0.0}
     q = {}

@@ -31,9 +31,11 @@ def supervise(mapper: Mapper, scene, kind: str, text_encoder, progress: bool = F
 
         sset, stats = supervise_map_multiview(mapper, *make_perception(cfg.models.preset, cfg.models),
                                               progress)
+        sset.pca.fit_now()
         return {**sset.stats(), "multiview": stats, "seconds": round(time.perf_counter() - t, 3)}
     else:
         raise ValueError(f"supervision must be 'default' or 'oracle', got {kind!r}")
+    sset.pca.fit_now()  # fewer masks than the incremental PCA waits for (one keyframe): fit on them all
     return {**sset.stats(), "seconds": round(time.perf_counter() - t, 3)}
 
 

@@ -106,20 +106,25 @@ def read_capture(root: str | Path, test_every: int = 8, trajectory: str | Path |
     return Scene(root=root, train=train, test=test, kind="capture")
 
 
-def read_scene(root: str | Path, test_every: int = 8, bag_options=None) -> Scene:
-    """Read any supported scene: ReasoningGD layout, a real capture folder or a ROS 2 bag (.mcap,
-    .db3 or a rosbag2 folder; `bag_options` is a rosbag.BagOptions, default options when None)."""
+def read_scene(root: str | Path, test_every: int = 8, bag_options=None, bop_options=None) -> Scene:
+    """Read any supported scene: ReasoningGD layout, a real capture folder, a BOP scene folder
+    (scene_camera.json + scene_gt.json; `bop_options` a bop.BopOptions, else every `test_every`-th
+    image a test view) or a ROS 2 bag (.mcap, .db3 or a rosbag2 folder; `bag_options` is a
+    rosbag.BagOptions, default options when None)."""
+    from .bop import BopOptions, is_bop, read_bop
     from .rosbag import is_bag, read_bag
     from .scene import read_reasoninggd
 
     root = Path(root)
     if is_bag(root):
         return read_bag(root, bag_options, test_every=test_every)
+    if is_bop(root):
+        return read_bop(root, bop_options or BopOptions(test_every=test_every))
     if (root / "transforms_train.json").is_file():
         return read_reasoninggd(root)
     if root.is_dir() and any(_FRAME_RE.match(p.name) for p in root.iterdir()):
         return read_capture(root, test_every=test_every)
     raise SceneError(
         f"{root}: not a scene folder or bag (expected transforms_train.json, frame-XXXXXX.color.png files, "
-        "a .mcap/.db3 file or a rosbag2 folder with metadata.yaml)"
+        "scene_camera.json + scene_gt.json (BOP), a .mcap/.db3 file or a rosbag2 folder with metadata.yaml)"
     )

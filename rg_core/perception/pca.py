@@ -73,3 +73,12 @@ class IncrementalPCA:
             self.version += 1
             return True
         return False
+
+    def fit_now(self) -> bool:
+        """Fit on every embedding so far even below `min_fit` (a finished supervision set: e.g. a
+        one-keyframe map of a nearly static camera has 7 masks). True when it fitted."""
+        if self.pca is not None or not any(len(r) for r in self.raw):
+            return False
+        self.pca = PCA.fit(torch.cat(self.raw), self.k)
+        self.version += 1
+        return True
