@@ -141,10 +141,7 @@ class LLMChoiceScorer:
         meta = self.llm.metadata
         self.template = meta.get("tokenizer.chat_template")
         self.model_name = meta.get("general.name", path.name)
-        vocab = self.llm._model.vocab
-        self.eot = int(llama_cpp.llama_vocab_eot(vocab))
-        if self.eot < 0:
-            self.eot = int(self.llm.token_eos())
+        self.eot = self._end_of_answer()
 
     def __del__(self):
         b = getattr(self, "_batch", None)
@@ -168,14 +165,28 @@ class LLMChoiceScorer:
         else:
             system = SYSTEM_NO_NAMES
         if self.template:
-            from llama_cpp.llama_chat_format import Jinja2ChatFormatter
-
-            fmt = Jinja2ChatFormatter(self.template, eos_token=self.llm._model.token_get_text(self.llm.token_eos()),
-                                      bos_token=self.llm._model.token_get_text(self.llm.token_bos()),
-                                      add_generation_prompt=True)
-            return fmt(messages=[{"role": "system", "content": system},
-                                 {"role": "user", "content": USER.format(query=query)}]).prompt
+            return self._format([{"role": "system", "content": system},
+                                 {"role": "user", "content": USER.format(query=query)}], True)
         return PLAIN_TEMPLATE.format(system=system, query=query)
+
+    def _format(self, messages: list[dict], generation_prompt: bool) -> str:
+        from llama_cpp.llama_chat_format import Jinja2ChatFormatter
+
+        tok = self.llm._model.token_get_text
+        fmt = Jinja2ChatFormatter(self.template, eos_token=tok(self.llm.token_eos()), bos_token=tok(self.llm.token_bos()),
+                                  add_generation_prompt=generation_prompt)
+        return fmt(messages=messages).prompt
+
+    def _end_of_answer(self) -> int:
+        """The token that ends an assistant turn in the model's own template (SmolLM2 / Qwen:
+        <|im_end|>, Gemma: <end_of_turn>; a newline without a template)."""
+        tail = "\n"
+        if self.template:
+            mark = "Qzx7Objectname"
+            text = self._format([{"role": "user", "content": "q"}, {"role": "assistant", "content": mark}], False)
+            tail = text[text.index(mark) + len(mark):] if mark in text else ""
+        toks = self._tokens(tail, False) if tail.strip(" ") else []
+        return toks[0] if toks else int(self.llm.token_eos())
 
     def _tokens(self, text: str, bos: bool) -> list[int]:
         return list(self.llm.tokenize(text.encode("utf-8"), add_bos=bos, special=True))
@@ -298,24 +309,26 @@ class LLMChoiceScorer:
             raise ValueError(f"glosses must be a dict name -> text or None, got {type(glosses).__name__}")
         return query, names, glosses
 
-    def score(self, query: str, names: list[str], glosses: dict | None = None) -> np.ndarray:
-        """Log-likelihood of each name as the answer to `query` [N] (float64, finite)."""
+    def score_tokens(self, query: str, names: list[str], glosses: dict | None = None) -> list[np.ndarray]:
+        """Per name the log-probs of its answer tokens (the end token last when end_token)."""
         query, names, glosses = self._inputs(query, names, glosses)
         key = (query, tuple(names), tuple(sorted((glosses or {}).items())) if self._with_names(names) else None)
         if key in self._memo:
             self._memo.move_to_end(key)
-            return self._memo[key].copy()
+            return [a.copy() for a in self._memo[key]]
         pre, answers = self.encode(query, names, glosses)
-        need = len(pre) + sum(len(a) for a in answers)
         if len(pre) + max(len(a) for a in answers) >= self.n_ctx:
-            raise ValueError(f"prompt and answers need {need} tokens, more than n_ctx={self.n_ctx}")
+            raise ValueError(f"prompt of {len(pre)} tokens and its answers do not fit n_ctx={self.n_ctx}")
         first = self._prefix(pre)
         lps = self._candidate_logps(len(pre), first, answers)
-        s = self._reduce(lps)
-        self._memo[key] = s.copy()
+        self._memo[key] = [a.copy() for a in lps]
         while len(self._memo) > self.memo_size:
             self._memo.popitem(last=False)
-        return s
+        return lps
+
+    def score(self, query: str, names: list[str], glosses: dict | None = None) -> np.ndarray:
+        """Log-likelihood of each name as the answer to `query` [N] (float64, finite)."""
+        return self._reduce(self.score_tokens(query, names, glosses))
 
     def score_reference(self, query: str, names: list[str], glosses: dict | None = None) -> np.ndarray:
         """The same scores, each name's whole token sequence evaluated from an empty cache
