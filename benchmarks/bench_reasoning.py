@@ -49,14 +49,17 @@ def fit_llm(reasoner, scorer, queries, names: list[str], scenes: list[list[str]]
     feat = features(reasoner, queries, names)
     text = combine(feat["sn"], feat["sg"], reasoner.name_weight)       # [M, N]
     rows = []   # (query index, catalogue indices, per-name token log-probs)
+    call_s = {False: [], True: []}   # seconds per scorer call: 7-name scene, whole catalogue
     t = time.perf_counter()
     for i, (q, scene) in enumerate(tqdm(list(zip(queries, scenes)), desc="llm fit", leave=False)):
         if not q.target:
             continue
         for vocab in (scene, names):
             glosses = dict(zip(vocab, reasoner.gloss_texts(vocab))) if reasoner.knowledge else None
-            rows.append((i, [names.index(n) for n in vocab], scorer.score_tokens(q.text, vocab, glosses),
-                         len(vocab) == len(names)))
+            t1 = time.perf_counter()
+            lp = scorer.score_tokens(q.text, vocab, glosses)
+            call_s[len(vocab) == len(names)].append(time.perf_counter() - t1)
+            rows.append((i, [names.index(n) for n in vocab], lp, len(vocab) == len(names)))
     secs = time.perf_counter() - t
     table, best = [], None
     for reduce in ("sum", "mean"):
@@ -75,7 +78,12 @@ def fit_llm(reasoner, scorer, queries, names: list[str], scenes: list[list[str]]
                 best = (key, r)
     return {"llm_weight": best[1]["llm_weight"], "llm_reduce": best[1]["reduce"],
             "tune_top1_7": best[1]["top1_7"], "tune_top1_catalogue": best[1]["top1_catalogue"],
-            "n_real": len(rows) // 2, "seconds": round(secs, 1), "grid": table}
+            "n_real": len(rows) // 2, "seconds": round(secs, 1),
+            "llm_ms_per_call_7_median": round(1000 * float(np.median(call_s[False])), 1),
+            "llm_ms_per_call_catalogue_median": round(1000 * float(np.median(call_s[True])), 1),
+            "best_nonzero": max((r for r in table if r["llm_weight"] > 0),
+                                key=lambda r: (r["top1_7"] + r["top1_catalogue"], -r["llm_weight"])),
+            "grid": table}
 
 
 def evaluate(reasoner, queries, names, vocabs, label: str) -> dict:
@@ -117,10 +125,11 @@ def main(argv=None) -> int:
     ap.add_argument("--fit", action="store_true", help="refit the new reasoner on the tune half")
     ap.add_argument("--llm", action="store_true", help="also the LLM-scored ensemble (needs llm_scorer)")
     ap.add_argument("--llm-model", default="", help="GGUF for --llm (default: the packaged SmolLM2-135M)")
-    ap.add_argument("--llm-knowledge-max", type=int, default=12,
+    ap.add_argument("--llm-knowledge-max", type=int, default=0,
                     help="list the names (with glosses) in the LLM prompt for scenes of at most this many names")
     ap.add_argument("--subsample", type=int, default=1, help="keep every K-th query of each half")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--llm-threads", type=int, default=0, help="llama.cpp threads (0: --threads)")
     a = ap.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -169,10 +178,11 @@ def main(argv=None) -> int:
         try:
             from rg_core.perception.llm_scorer import LLMChoiceScorer
             t = time.perf_counter()
-            scorer = LLMChoiceScorer(model_path=a.llm_model or None, n_threads=a.threads, memo_size=8192,
+            scorer = LLMChoiceScorer(model_path=a.llm_model or None, n_threads=a.llm_threads or a.threads, memo_size=8192,
                                      knowledge_max_names=a.llm_knowledge_max)
             res["llm"] = {"model": scorer.model_name, "file": scorer.path.name, "load_s": round(time.perf_counter() - t, 2),
-                          "chat_template": bool(scorer.template), "knowledge_max_names": a.llm_knowledge_max}
+                          "chat_template": bool(scorer.template), "knowledge_max_names": a.llm_knowledge_max,
+                          "threads": a.llm_threads or a.threads}
             w = 0.1
             if a.fit:
                 res["fit_on_tune"]["llm"] = fit = fit_llm(new, scorer, sp.tune, sp.names,
@@ -185,15 +195,25 @@ def main(argv=None) -> int:
                                                 absent_margin=new.absent_margin,
                                                 background_exclude=new.background_exclude, prior_trust=new.prior_trust)
             reasoners["new+llm"].background()
+            if a.fit and w == 0:   # the fit turned the LLM off: also show the best non-zero tune weight held out
+                bn = res["fit_on_tune"]["llm"]["best_nonzero"]
+                scorer2 = LLMChoiceScorer(model_path=a.llm_model or None, n_threads=a.llm_threads or a.threads,
+                                          memo_size=8192, knowledge_max_names=a.llm_knowledge_max, reduce=bn["reduce"])
+                reasoners["new+llm*"] = TextReasoner(
+                    text_model=_CachedText(model), llm_scorer=scorer2, llm_weight=bn["llm_weight"],
+                    name_weight=new.name_weight, min_similarity=new.min_similarity, absent_margin=new.absent_margin,
+                    background_exclude=new.background_exclude, prior_trust=new.prior_trust)
+                reasoners["new+llm*"].background()
+                res["llm"]["best_nonzero"] = bn
         except Exception as exc:  # noqa: BLE001
             res["llm"] = f"not run: {type(exc).__name__}: {exc}"
     for half, qs in (("tune", sp.tune), ("held_out", sp.held)):
         scenes = scene_vocabularies(qs, sp.names)
         cat = [sp.names] * len(qs)
         for name, r in reasoners.items():
-            if name == "new+llm" and half == "tune":
+            if name.startswith("new+llm") and half == "tune":
                 continue   # the LLM's tune-half figures are in fit_on_tune (its time goes to the held-out half)
-            if r.llm_scorer is not None:
+            if r.llm_scorer is not None and r.llm_weight:
                 r.llm_scorer._memo.clear()   # every held-out query is scored afresh: honest latency
             res.setdefault(name, {})[half] = {"scene7": evaluate(r, qs, sp.names, scenes, f"{name} {half} 7"),
                                              "catalogue": evaluate(r, qs, sp.names, cat, f"{name} {half} all")}
@@ -210,7 +230,7 @@ def write_outputs(res: dict, out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    names = [k for k in ("old", "new", "new+llm") if k in res]
+    names = [k for k in ("old", "new", "new+llm", "new+llm*") if k in res]
     rows = ["| reasoner | half | 7-name top-1 | top-3 | catalogue top-1 | top-3 | false rej. (7) | absent rej. (7) "
             "| absent rej. (cat.) | ms/query (7) | ms/query (cat.) |", "|" + "---|" * 11]
     for n in names:

