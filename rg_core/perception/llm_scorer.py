@@ -2,11 +2,16 @@
 the answer to the query by its log-likelihood under a local instruct GGUF (llama-cpp-python) - a
 choice among the names, never free generation.
 
-The prompt is chat-formatted by the model's own template: a system message with the scene's
-names (with their WordNet knowledge, "name: gloss (a kind of ...)", when the reasoner passes it
-and the scene is small), the query as the user turn, then each name as the assistant's whole
-answer (followed by the end-of-turn token, so "orange" and "orange cup" are told apart). A name's
-score is the sum (reduce="sum") or the per-token mean (reduce="mean") of its tokens' log-probs.
+The prompt is chat-formatted by the model's own template (a plain "Description: ... Object:"
+prompt for a model without one): a system message, optionally listing the scene's names with
+their WordNet knowledge ("name: gloss (a kind of ...)", as the reasoner passes it; off by default,
+see knowledge_max_names: it made the small models worse), the query as the user turn, then each
+name as the assistant's whole answer (followed by the end-of-turn token, so "orange" and "orange
+cup" are told apart). A name's score is the sum (reduce="sum") or the per-token mean
+(reduce="mean") of its tokens' log-probs.
+
+Measured (benchmarks/bench_reasoning.py --fit --llm, README): no packaged model improves the
+text reasoner's held-out top-1, so the config leaves it off (reason.llm_scorer: false).
 
 Speed (2 CPU cores): the shared prompt is evaluated once per query into sequence 0 of the KV
 cache, and its longest common prefix with the previous call is kept (a robot asks many
