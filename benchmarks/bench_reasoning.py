@@ -2,14 +2,20 @@
 nearest name, background-name rejection) against the new one (name + WordNet gloss evidence,
 thresholds fit on the tune half), in the same run, both halves reported separately.
 
-    python benchmarks/bench_reasoning.py [--out bench_out/reasoning] [--fit] [--llm]
+    python benchmarks/bench_reasoning.py [--out bench_out/reasoning] [--fit] [--llm [--llm-model GGUF]]
+                                         [--subsample K]
 
 Per half: top-1 / top-3 among random 7-name scene vocabularies (the target always in; fixed seed)
 and among the whole catalogue, real descriptions wrongly rejected, absent things rejected
 (absent queries get 7 random names), warm latency per implicit query, explicit latency, load time.
 --fit refits the text reasoner on the tune half and reports the fitted values (the defaults in
 rg_core/perception/reasoner.py FIT came from this); nothing is ever fit on the held-out half.
---llm adds the LLM-scored ensemble when rg_core.perception.llm_scorer is importable.
+--llm adds the LLM-scored ensemble (rg_core/perception/llm_scorer.py, default model the packaged
+SmolLM2-135M; --llm-model any GGUF); with --fit its llm_weight and the reduction of a name's token
+log-probs (sum or mean) are grid-fit on the TUNE half (sum of 7-name and whole-catalogue top-1 over
+the real descriptions), and the LLM ensemble is evaluated on the held-out half only.
+--subsample K keeps every K-th query of each half (deterministic; the text fit still uses the
+whole tune half) when the LLM makes the full run too slow.
 Writes reasoning.json, reasoning.md (table) and reasoning.png.
 """
 from __future__ import annotations
@@ -28,6 +34,56 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from rg_core.util import run_json_script  # noqa: E402
+
+
+LLM_WEIGHTS = (0.0, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0)
+
+
+def fit_llm(reasoner, scorer, queries, names: list[str], scenes: list[list[str]]) -> dict:
+    """llm_weight and reduce ("sum" / "mean" of a name's token log-probs) for the most 7-name +
+    whole-catalogue top-1 (real descriptions of the given half; rejection does not depend on the
+    LLM term: it is decided on the text score); ties: the smaller weight, then "sum"."""
+    from rg_core.eval.reasoning import features
+    from rg_core.perception.reason_scoring import combine
+
+    feat = features(reasoner, queries, names)
+    text = combine(feat["sn"], feat["sg"], reasoner.name_weight)       # [M, N]
+    rows = []   # (query index, catalogue indices, per-name token log-probs)
+    call_s = {False: [], True: []}   # seconds per scorer call: 7-name scene, whole catalogue
+    t = time.perf_counter()
+    for i, (q, scene) in enumerate(tqdm(list(zip(queries, scenes)), desc="llm fit", leave=False)):
+        if not q.target:
+            continue
+        for vocab in (scene, names):
+            glosses = dict(zip(vocab, reasoner.gloss_texts(vocab))) if reasoner.knowledge else None
+            t1 = time.perf_counter()
+            lp = scorer.score_tokens(q.text, vocab, glosses)
+            call_s[len(vocab) == len(names)].append(time.perf_counter() - t1)
+            rows.append((i, [names.index(n) for n in vocab], lp, len(vocab) == len(names)))
+    secs = time.perf_counter() - t
+    table, best = [], None
+    for reduce in ("sum", "mean"):
+        f = np.sum if reduce == "sum" else np.mean
+        lls = [torch.tensor([float(f(x)) for x in lp], dtype=torch.float64) for _, _, lp, _ in rows]
+        for w in LLM_WEIGHTS:
+            hit = {False: [], True: []}
+            for (i, idx, _, cat), ll in zip(rows, lls):
+                s = combine(text[i, idx].double(), None, 1.0, ll, w)
+                hit[cat].append(idx[int(s.argmax())] == names.index(queries[i].target))
+            r = {"reduce": reduce, "llm_weight": w, "top1_7": round(float(np.mean(hit[False])), 4),
+                 "top1_catalogue": round(float(np.mean(hit[True])), 4)}
+            table.append(r)
+            key = (r["top1_7"] + r["top1_catalogue"], -w, reduce == "sum")
+            if best is None or key > best[0]:
+                best = (key, r)
+    return {"llm_weight": best[1]["llm_weight"], "llm_reduce": best[1]["reduce"],
+            "tune_top1_7": best[1]["top1_7"], "tune_top1_catalogue": best[1]["top1_catalogue"],
+            "n_real": len(rows) // 2, "seconds": round(secs, 1),
+            "llm_ms_per_call_7_median": round(1000 * float(np.median(call_s[False])), 1),
+            "llm_ms_per_call_catalogue_median": round(1000 * float(np.median(call_s[True])), 1),
+            "best_nonzero": max((r for r in table if r["llm_weight"] > 0),
+                                key=lambda r: (r["top1_7"] + r["top1_catalogue"], -r["llm_weight"])),
+            "grid": table}
 
 
 def evaluate(reasoner, queries, names, vocabs, label: str) -> dict:
@@ -68,7 +124,12 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(ROOT / "bench_out" / "reasoning"))
     ap.add_argument("--fit", action="store_true", help="refit the new reasoner on the tune half")
     ap.add_argument("--llm", action="store_true", help="also the LLM-scored ensemble (needs llm_scorer)")
+    ap.add_argument("--llm-model", default="", help="GGUF for --llm (default: the packaged SmolLM2-135M)")
+    ap.add_argument("--llm-knowledge-max", type=int, default=0,
+                    help="list the names (with glosses) in the LLM prompt for scenes of at most this many names")
+    ap.add_argument("--subsample", type=int, default=1, help="keep every K-th query of each half")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--llm-threads", type=int, default=0, help="llama.cpp threads (0: --threads)")
     a = ap.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -78,6 +139,9 @@ def main(argv=None) -> int:
     from rg_core.perception.reasoner import TextReasoner, _CachedText
 
     sp = split(load_descriptions())
+    tune_all = sp.tune
+    if a.subsample > 1:
+        sp.tune, sp.held = sp.tune[::a.subsample], sp.held[::a.subsample]
     t = time.perf_counter()
     model = MiniLMText()
     load_model = time.perf_counter() - t
@@ -92,17 +156,17 @@ def main(argv=None) -> int:
     new.background()
     load_new = time.perf_counter() - t
     res = {"date": time.strftime("%Y-%m-%d"), "threads": a.threads,
-           "split": {"tune_objects": len(sp.tune_names), "held_objects": len(sp.held_names),
+           "subsample": a.subsample, "split": {"tune_objects": len(sp.tune_names), "held_objects": len(sp.held_names),
                      "tune_queries": len(sp.tune), "held_queries": len(sp.held), "catalogue": len(sp.names)},
            "load_s": {"minilm": round(load_model, 2), "old": round(load_old, 2), "new": round(load_new, 2)}}
     if a.fit:
         from rg_core.perception.reasoner import DOMAIN_PRIOR_PATH
 
-        prior, oof = fit_domain_prior(new.text, sp.tune)
+        prior, oof = fit_domain_prior(new.text, tune_all)
         DOMAIN_PRIOR_PATH.write_text(json.dumps(prior) + "\n", encoding="utf-8")
-        vocabs = [[sp.names.index(n) for n in v] for v in scene_vocabularies(sp.tune, sp.names)]
+        vocabs = [[sp.names.index(n) for n in v] for v in scene_vocabularies(tune_all, sp.names)]
         res["fit_on_tune"] = {"domain_prior": {k: v for k, v in prior.items() if k != "coef"},
-                              **fit_text_reasoner(features(new, sp.tune, sp.names), vocabs,
+                              **fit_text_reasoner(features(new, tune_all, sp.names), vocabs,
                                                   prior_reject=oof < prior["threshold"],
                                                   catalogue=list(range(len(sp.names))))}
         f = res["fit_on_tune"]
@@ -113,14 +177,44 @@ def main(argv=None) -> int:
     if a.llm:
         try:
             from rg_core.perception.llm_scorer import LLMChoiceScorer
-            reasoners["new+llm"] = TextReasoner(text_model=_CachedText(model), llm_scorer=LLMChoiceScorer(),
-                                                llm_weight=res.get("fit_on_tune", {}).get("llm_weight", 0.1))
+            t = time.perf_counter()
+            scorer = LLMChoiceScorer(model_path=a.llm_model or None, n_threads=a.llm_threads or a.threads, memo_size=8192,
+                                     knowledge_max_names=a.llm_knowledge_max)
+            res["llm"] = {"model": scorer.model_name, "file": scorer.path.name, "load_s": round(time.perf_counter() - t, 2),
+                          "chat_template": bool(scorer.template), "knowledge_max_names": a.llm_knowledge_max,
+                          "threads": a.llm_threads or a.threads}
+            w = 0.1
+            if a.fit:
+                res["fit_on_tune"]["llm"] = fit = fit_llm(new, scorer, sp.tune, sp.names,
+                                                          scene_vocabularies(sp.tune, sp.names))
+                w, scorer.reduce = fit["llm_weight"], fit["llm_reduce"]
+                print("llm fit:", json.dumps({k: v for k, v in fit.items() if k != "grid"}))
+            res["llm"]["llm_weight"], res["llm"]["reduce"] = w, scorer.reduce
+            reasoners["new+llm"] = TextReasoner(text_model=_CachedText(model), llm_scorer=scorer, llm_weight=w,
+                                                name_weight=new.name_weight, min_similarity=new.min_similarity,
+                                                absent_margin=new.absent_margin,
+                                                background_exclude=new.background_exclude, prior_trust=new.prior_trust)
+            reasoners["new+llm"].background()
+            if a.fit and w == 0:   # the fit turned the LLM off: also show the best non-zero tune weight held out
+                bn = res["fit_on_tune"]["llm"]["best_nonzero"]
+                scorer2 = LLMChoiceScorer(model_path=a.llm_model or None, n_threads=a.llm_threads or a.threads,
+                                          memo_size=8192, knowledge_max_names=a.llm_knowledge_max, reduce=bn["reduce"])
+                reasoners["new+llm*"] = TextReasoner(
+                    text_model=_CachedText(model), llm_scorer=scorer2, llm_weight=bn["llm_weight"],
+                    name_weight=new.name_weight, min_similarity=new.min_similarity, absent_margin=new.absent_margin,
+                    background_exclude=new.background_exclude, prior_trust=new.prior_trust)
+                reasoners["new+llm*"].background()
+                res["llm"]["best_nonzero"] = bn
         except Exception as exc:  # noqa: BLE001
             res["llm"] = f"not run: {type(exc).__name__}: {exc}"
     for half, qs in (("tune", sp.tune), ("held_out", sp.held)):
         scenes = scene_vocabularies(qs, sp.names)
         cat = [sp.names] * len(qs)
         for name, r in reasoners.items():
+            if name.startswith("new+llm") and half == "tune":
+                continue   # the LLM's tune-half figures are in fit_on_tune (its time goes to the held-out half)
+            if r.llm_scorer is not None and r.llm_weight:
+                r.llm_scorer._memo.clear()   # every held-out query is scored afresh: honest latency
             res.setdefault(name, {})[half] = {"scene7": evaluate(r, qs, sp.names, scenes, f"{name} {half} 7"),
                                              "catalogue": evaluate(r, qs, sp.names, cat, f"{name} {half} all")}
     for name, r in reasoners.items():
@@ -136,15 +230,17 @@ def write_outputs(res: dict, out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    names = [k for k in ("old", "new", "new+llm") if k in res]
+    names = [k for k in ("old", "new", "new+llm", "new+llm*") if k in res]
     rows = ["| reasoner | half | 7-name top-1 | top-3 | catalogue top-1 | top-3 | false rej. (7) | absent rej. (7) "
-            "| absent rej. (cat.) | ms/query (7) |", "|" + "---|" * 10]
+            "| absent rej. (cat.) | ms/query (7) | ms/query (cat.) |", "|" + "---|" * 11]
     for n in names:
         for h in ("tune", "held_out"):
+            if h not in res[n]:
+                continue
             s, c = res[n][h]["scene7"], res[n][h]["catalogue"]
             rows.append(f"| {n} | {h} | {s['top1']:.1%} | {s['top3']:.1%} | {c['top1']:.1%} | {c['top3']:.1%} | "
                         f"{s['false_rejections']:.1%} | {s['absent_rejected']:.1%} | {c['absent_rejected']:.1%} | "
-                        f"{s['ms_per_query_median']} |")
+                        f"{s['ms_per_query_median']} | {c['ms_per_query_median']} |")
     (out / "reasoning.md").write_text("\n".join(rows) + "\n")
     (out / "reasoning.json").write_text(json.dumps(res, indent=1))
     print("\n".join(rows))
