@@ -157,7 +157,9 @@ def test_replayed_bag_builds_the_same_map_and_answers_ground(h):
     with AnyReader([h.bag]) as r:
         n_msgs = r.message_count
     assert f"published {n_msgs} messages" in rep.stdout + rep.stderr, rep.stdout + rep.stderr
-    st = wait_for(lambda: h.status if h.status.get("frames", 0) >= N and h.status.get("queue") == 0 else None,
+    # 'mapped' counts frames whose add_frame returned; 'frames' is counted as a frame starts (the status
+    # takes no lock), so frames == N with an empty queue can still be the last frame half-way through
+    st = wait_for(lambda: h.status if h.status.get("mapped", 0) >= N and h.status.get("queue") == 0 else None,
                   240, lambda: f"{N} frames mapped (status {h.status})")
     assert st["tf_dropped"] == 0 and st["dropped"] == 0 and st["rejected"] == 0, st
     assert st["pose_source"] == "tf" and set(st["input_errors"]) == set(), st["input_errors"]
