@@ -100,6 +100,13 @@ class MapConfig:
     """A frame is a keyframe if more than this fraction of its valid depth is unexplained ..."""
     kf_photo_error: float = 0.09
     """... or if the map renders its explained pixels with a mean L1 colour error above this."""
+    kf_min_count: int = 4
+    """... or, while the map holds fewer keyframes than this, if its stamp is at least `kf_min_interval`
+    after the last keyframe's: a near-static camera (BOP ycbv_0002: 2-20 mm over 20 frames) explains
+    every later frame, and a single keyframe leaves grounding one view of each mask (the mask votes
+    of rg_core/grounding/carve.py need two) and the field one view to learn from. 0 turns it off."""
+    kf_min_interval: float = 1.0
+    """Seconds (frame stamps) between such keyframes."""
     seed_colour_error: float = 0.3
     """After a keyframe's optimisation, seed at half the stride where the map still renders it with a
     per-pixel L1 colour error above this (detail the map lacks: densification). 0 turns it off."""
@@ -228,6 +235,11 @@ class GroundConfig:
     link_spacing: float = 3.0
     """A group keeps the Gaussians connected in space to the most relevant point by steps of at most
     this many map spacings (median nearest-neighbour distance); 0 keeps the whole feature cluster."""
+    anchor_support: bool = True
+    """... and of those pieces the one with the most Gaussians the reference view sees inside its mask
+    (the most relevant point's piece when none): on BOP ycbv_0002 the peak pixel of the large marker
+    lay on its cap, whose sensor depth is the table 11 cm behind; the marker kept 6 of its 157
+    Gaussians (visible IoU 0.02)."""
     max_query_chars: int = 1000
     """Longer queries are rejected."""
     seed: int = 0

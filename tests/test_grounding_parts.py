@@ -164,6 +164,29 @@ def test_connected_to_keeps_the_anchor_piece():
     assert connected_to(pts[:1], None, link).all() and connected_to(pts, None, 0.0).all()
 
 
+def test_connected_to_prefers_the_piece_the_mask_supports():
+    """ycbv_0002's large marker: the peak pixel's anchor fell on 6 Gaussians of the table behind the
+    marker's cap (in its mask, with the table's depth); the body, which the mask sees, was dropped."""
+    from rg_core.grounding.boxes import connected_to, map_spacing
+
+    rng = np.random.default_rng(1)
+    body = rng.uniform(0, 0.02, (150, 3)) * [1, 6, 1]          # a thin upright object
+    stray = rng.uniform(0, 0.01, (6, 3)) + [0, 0, 0.11]        # 11 cm behind: the background
+    pts = np.concatenate([body, stray])
+    link = 3 * map_spacing(pts)
+    support = np.zeros(len(pts), bool)
+    support[:120] = True                                        # seen inside the reference mask
+    support[-6:] = True
+    anchor = stray.mean(0)
+    assert connected_to(pts, anchor, link)[-6:].all()           # the anchor alone: the stray piece
+    keep = connected_to(pts, anchor, link, support)
+    assert keep[:150].all() and not keep[150:].any()
+    # No support anywhere: the anchor's piece, as before.
+    assert (connected_to(pts, anchor, link, np.zeros(len(pts), bool)) == connected_to(pts, anchor, link)).all()
+    with pytest.raises(ValueError):
+        connected_to(pts, anchor, link, support[:-1])
+
+
 def test_relevancy_in_pca_space_matches_decompressing_first():
     from rg_core.grounding.relevancy import relevancy_pca
     from rg_core.perception.pca import PCA

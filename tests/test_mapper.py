@@ -47,6 +47,18 @@ def test_standing_still_adds_no_keyframe(synth_scene):
     assert len(mapper.gaussians) == n and len(mapper.keyframes) == 1
 
 
+def test_near_static_camera_keeps_a_few_keyframes(synth_scene):
+    """A camera that hardly moves (BOP ycbv_0002) explains every later frame: until kf_min_count
+    keyframes, a frame kf_min_interval seconds after the last keyframe is one too; never more."""
+    mapper = Mapper(MapConfig(**SMALL, kf_min_count=3, kf_min_interval=1.0))
+    rgb, depth, K, c2w, stamp = frame_args(synth_scene.train[3])
+    res = [mapper.add_frame(rgb, depth, K, c2w, stamp + 0.5 * i) for i in range(8)]
+    assert [r.keyframe for r in res] == [True, False, True, False, True, False, False, False], [r.reason for r in res]
+    assert "kf_min_count" in res[2].reason and len(mapper.keyframes) == 3
+    off = Mapper(MapConfig(**SMALL, kf_min_count=0))
+    assert sum(off.add_frame(rgb, depth, K, c2w, stamp + 0.5 * i).keyframe for i in range(4)) == 1
+
+
 def test_second_pass_barely_grows_the_map(synth_scene):
     mapper = Mapper(MapConfig(**SMALL))
     stream_frames(mapper, synth_scene.train, progress=False)

@@ -26,11 +26,16 @@ def map_spacing(points: np.ndarray, sample: int = 4000, seed: int = 0) -> float:
     return float(np.median(d[:, 1]))
 
 
-def connected_to(points: np.ndarray, anchor: np.ndarray | None, link: float) -> np.ndarray:
+def connected_to(points: np.ndarray, anchor: np.ndarray | None, link: float,
+                 support: np.ndarray | None = None) -> np.ndarray:
     """bool [N]: the points [N, 3] joined to `anchor` [3] by chains of steps of at most `link` (m),
     starting from the point nearest the anchor; None: the largest such component. An object is one
     piece in space: members that only share its instance feature (the table under it, a look-alike
-    elsewhere) are left out."""
+    elsewhere) are left out.
+    `support` (bool [N], e.g. seen inside the reference view's mask): when any point has it, the
+    component with the most supported points is kept instead of the anchor's. One pixel can lie:
+    a thin object's rim in the mask often carries the depth of the surface behind it (colour and
+    depth disagree at edges), and the anchor then falls on a few Gaussians of the background."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
@@ -43,7 +48,12 @@ def connected_to(points: np.ndarray, anchor: np.ndarray | None, link: float) -> 
     pairs = tree.query_pairs(link, output_type="ndarray")                     # [E, 2]
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else coo_matrix((n, n))
     _, comp = connected_components(graph, directed=False)
-    if anchor is None:
+    sup = None if support is None else np.asarray(support, bool).reshape(-1)
+    if sup is not None and sup.shape != (n,):
+        raise ValueError(f"connected_to: support must be [N] = [{n}], got {list(np.shape(support))}")
+    if sup is not None and sup.any():
+        keep = np.bincount(comp[sup], minlength=int(comp.max()) + 1).argmax()
+    elif anchor is None:
         keep = np.bincount(comp).argmax()
     else:
         keep = comp[int(tree.query(np.asarray(anchor, np.float64))[1])]

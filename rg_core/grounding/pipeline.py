@@ -371,6 +371,10 @@ class Grounder:
         z = float(fr.depth[py, px] / fr.alpha[py, px].clamp(min=1e-6))             # the surface there
         anchor = pixels_to_points(px, py, z, np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64))
         views = self.carve_views(cands)
+        ref_view = None
+        if self.gcfg.anchor_support and ref_mask.shape == tuple(kf.depth.shape):
+            ref_view = MaskView(np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64),
+                                kf.depth.numpy(), ref_mask.numpy())
         carved = voted = None
         if views:
             # Votes only where they can matter: the groups and what lies within 4 s* of the peak.
@@ -387,7 +391,12 @@ class Grounder:
                 if n == 0:
                     ids = np.union1d(ids, np.nonzero(voted)[0])
             if link > 0 and len(ids) > 1:  # the first group holds the most relevant point; others their largest piece
-                ids = ids[connected_to(means[ids], anchor if n == 0 and z > 0 else None, link)]
+                support = None
+                if n == 0 and ref_view is not None:
+                    # The piece the reference mask sees most, not only the one under its peak pixel.
+                    support = mask_votes(means[ids], [ref_view], g.scales.detach()[torch.from_numpy(ids)]
+                                         .max(1).values.numpy()).inside > 0
+                ids = ids[connected_to(means[ids], anchor if n == 0 and z > 0 else None, link, support)]
             ids = ids[robust_inliers(means[ids], self.gcfg.outlier_mads)]
             if not len(ids):
                 continue

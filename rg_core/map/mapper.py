@@ -123,6 +123,10 @@ class Mapper:
             res.reason = f"{100 * frac:.1f}% of the view is not in the map"
         elif photo > self.cfg.kf_photo_error:
             res.reason = f"map renders this view with colour error {photo:.3f}"
+        elif (len(self.keyframes) < self.cfg.kf_min_count
+              and fr.stamp - self.keyframes[-1].stamp >= self.cfg.kf_min_interval):
+            res.reason = (f"{len(self.keyframes)} keyframe(s) < kf_min_count {self.cfg.kf_min_count}: a keyframe every "
+                          f"{self.cfg.kf_min_interval:g} s until then (a near-static camera)")
         else:
             res.reason = f"already mapped ({100 * (1 - frac):.1f}% explained, colour error {photo:.3f})"
             res.seconds = {"prepare": t1 - t0, "check": t2 - t1}
