@@ -64,7 +64,9 @@ def main() -> int:
         folder = subset_folder(Path(args.scene), args.frames, tmp / "scene")
         frames = read_scene(folder, test_every=0).train
         t = time.perf_counter()
-        bag = write_scene_bag(frames, tmp / "bag", jpeg_quality=args.jpeg_quality)
+        # the folder's frames are stamped by index (1 s apart); keyframe selection reads stamps
+        # (map.kf_min_interval), so the bag keeps that timing
+        bag = write_scene_bag(frames, tmp / "bag", jpeg_quality=args.jpeg_quality, period=1.0)
         t_write = time.perf_counter() - t
         size = sum(p.stat().st_size for p in bag.iterdir())
         t = time.perf_counter()

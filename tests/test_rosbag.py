@@ -315,7 +315,9 @@ def test_rg_map_bag_matches_the_folder(frames, tmp_path):
     for f in frames:
         for p in src.glob(f"frame-{f.index:06d}.*"):
             os.symlink(p, folder / p.name)
-    b = write_scene_bag(frames, tmp_path / "bag")
+    # a folder's frames are stamped by index (1 s apart) and keyframe selection reads stamps
+    # (map.kf_min_interval): the bag carries the same timing so both maps see the same keyframes
+    b = write_scene_bag(frames, tmp_path / "bag", period=1.0)
     cfg = tmp_path / "small.yaml"
     cfg.write_text("map:\n  width: 160\n  iters_per_keyframe: 5\n  final_iters: 30\n")
     out = {}
