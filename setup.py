@@ -1,8 +1,7 @@
 """Installs the headless library `rg_core` and the ROS 2 node package `rg_ros` (ament_python)."""
 from pathlib import Path
 
-from setuptools import find_packages, setup
-from torch.utils.cpp_extension import BuildExtension, CppExtension
+from setuptools import Extension, find_packages, setup
 
 HERE = Path(__file__).parent
 PACKAGE = "rg_ros"
@@ -31,11 +30,12 @@ setup(
          + [str(p) for p in sorted(Path("config").glob("*.rviz"))]),
         (f"share/{PACKAGE}/launch", [str(p) for p in sorted(Path("launch").glob("*.launch.py"))]),
     ],
-    # The fast CPU rasterizer; torch must be installed first (pip --no-build-isolation).
-    ext_modules=[CppExtension(
+    # The fast CPU rasterizer: plain C++ with a C ABI, loaded with ctypes (rg_core/render/fast_cpu.py),
+    # so it needs no torch headers and compiles in seconds.
+    ext_modules=[Extension(
         "rg_core.render._rasterize_cpu", ["rg_core/render/csrc/rasterize_cpu.cpp", "rg_core/render/csrc/project_cpu.cpp"],
-        extra_compile_args=["-O3", "-fopenmp", "-fno-math-errno"], extra_link_args=["-fopenmp"])],
-    cmdclass={"build_ext": BuildExtension.with_options(use_ninja=False)},
+        language="c++", extra_compile_args=["-std=c++17", "-O3", "-fopenmp", "-fno-math-errno"],
+        extra_link_args=["-fopenmp"])],
     # rg-node / rg-ground / rg-replay: the node, a Ground service call and a scene replayed like a bag,
     # from a pip install (no ros2cli there); launch/grounding.launch.py runs rg-node under a full ROS 2.
     entry_points={"console_scripts": ["rg = rg_core.cli:main", "rg-node = rg_ros.tools:node_main",

@@ -1,7 +1,10 @@
 // EWA projection of 3D Gaussians (forward and hand-written backward), the C++ twin of
 // rg_core/render/projection.py: same sanitising, clamps and float64 arithmetic per Gaussian,
 // outputs in float32. Tests bind the two (values and gradients).
-#include <torch/extension.h>
+//
+// Plain C++ with a C ABI (no torch headers: it builds in seconds); rg_core/render/fast_cpu.py
+// allocates every array with torch and passes pointers through ctypes.
+#include <cstdint>
 
 #include <algorithm>
 #include <cmath>
@@ -16,12 +19,8 @@ struct Cam {
   double lxp, lxn, lyp, lyn, max_radius;
 };
 
-Cam make_cam(const torch::Tensor& w2c, const torch::Tensor& K, int64_t W, int64_t H, double near, double far,
-             double eps2d) {
-  auto w = w2c.to(torch::kFloat64).contiguous();
-  auto k = K.to(torch::kFloat64).contiguous();
-  const double* wp = w.data_ptr<double>();
-  const double* kp = k.data_ptr<double>();
+// wp: world-to-camera [4, 4] row-major, kp: intrinsics [3, 3] row-major, both float64.
+Cam make_cam(const double* wp, const double* kp, int64_t W, int64_t H, double near, double far, double eps2d) {
   Cam c;
   for (int r = 0; r < 3; ++r) {
     for (int q = 0; q < 3; ++q) c.R[3 * r + q] = wp[4 * r + q];
@@ -125,24 +124,14 @@ Geo compute(const Cam& cam, const float* m, const float* s, const float* q, floa
 
 }  // namespace
 
-// -> means2d [N, 2], conics [N, 3], depths [N], opacities [N] (float32), radii [N] int32.
-std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
-                                           torch::Tensor opacities, torch::Tensor w2c, torch::Tensor K,
-                                           int64_t width, int64_t height, double near, double far, double eps2d) {
-  means = means.to(torch::kFloat32).contiguous(); scales = scales.to(torch::kFloat32).contiguous();
-  quats = quats.to(torch::kFloat32).contiguous(); opacities = opacities.to(torch::kFloat32).contiguous();
-  const int64_t n = means.size(0);
+// -> means2d [N, 2], conics [N, 3], depths [N], opacities [N] (float32), radii [N] int32, written into
+// the caller's arrays. Inputs: means [N, 3], scales [N, 3], quats [N, 4], opacities [N], float32.
+extern "C" void rg_project_forward(const float* mp, const float* sp, const float* qp, const float* op, int64_t n,
+                                   const double* w2c, const double* K, int64_t width, int64_t height, double near,
+                                   double far, double eps2d, float* m2, float* cn, float* dp, float* oo,
+                                   int32_t* rp, int nthreads) {
   const Cam cam = make_cam(w2c, K, width, height, near, far, eps2d);
-  auto f = torch::TensorOptions().dtype(torch::kFloat32);
-  auto means2d = torch::empty({n, 2}, f), conics = torch::empty({n, 3}, f);
-  auto depths = torch::empty({n}, f), opac = torch::empty({n}, f);
-  auto radii = torch::empty({n}, f.dtype(torch::kInt32));
-  const float *mp = means.data_ptr<float>(), *sp = scales.data_ptr<float>(), *qp = quats.data_ptr<float>(),
-              *op = opacities.data_ptr<float>();
-  float *m2 = means2d.data_ptr<float>(), *cn = conics.data_ptr<float>(), *dp = depths.data_ptr<float>(),
-        *oo = opac.data_ptr<float>();
-  int32_t* rp = radii.data_ptr<int32_t>();
-#pragma omp parallel for schedule(static, 1024)
+#pragma omp parallel for schedule(static, 1024) num_threads(nthreads)
   for (int64_t i = 0; i < n; ++i) {
     const Geo g = compute(cam, mp + 3 * i, sp + 3 * i, qp + 4 * i, op[i]);
     if (!g.valid) {  // dropped: zeros, as in the torch twin
@@ -156,32 +145,18 @@ std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor sc
     cn[3 * i] = float(g.c / g.det); cn[3 * i + 1] = float(-g.b / g.det); cn[3 * i + 2] = float(g.a / g.det);
     dp[i] = float(g.z); oo[i] = float(g.o); rp[i] = g.radius;
   }
-  return {means2d, conics, depths, opac, radii};
 }
 
-// Gradients of the projection outputs back to means [N, 3], scales [N, 3], quats [N, 4], opacities [N].
-std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
-                                            torch::Tensor opacities, torch::Tensor w2c, torch::Tensor K,
-                                            int64_t width, int64_t height, double near, double far, double eps2d,
-                                            torch::Tensor g_means2d, torch::Tensor g_conics, torch::Tensor g_depths,
-                                            torch::Tensor g_opac) {
-  means = means.to(torch::kFloat32).contiguous(); scales = scales.to(torch::kFloat32).contiguous();
-  quats = quats.to(torch::kFloat32).contiguous(); opacities = opacities.to(torch::kFloat32).contiguous();
-  g_means2d = g_means2d.to(torch::kFloat32).contiguous(); g_conics = g_conics.to(torch::kFloat32).contiguous();
-  g_depths = g_depths.to(torch::kFloat32).contiguous(); g_opac = g_opac.to(torch::kFloat32).contiguous();
-  const int64_t n = means.size(0);
+// Gradients of the projection outputs back to means [N, 3], scales [N, 3], quats [N, 4], opacities [N],
+// written into gmp, gsp, gqp, gop_out; g_* are dL/d(outputs) of rg_project_forward.
+extern "C" void rg_project_backward(const float* mp, const float* sp, const float* qp, const float* op, int64_t n,
+                                    const double* w2c, const double* K, int64_t width, int64_t height, double near,
+                                    double far, double eps2d, const float* gm2, const float* gcn, const float* gdp,
+                                    const float* gop, float* gmp, float* gsp, float* gqp, float* gop_out,
+                                    int nthreads) {
   const Cam cam = make_cam(w2c, K, width, height, near, far, eps2d);
-  auto f = torch::TensorOptions().dtype(torch::kFloat32);
-  auto gm = torch::empty({n, 3}, f), gs = torch::empty({n, 3}, f), gq = torch::empty({n, 4}, f);
-  auto go = torch::empty({n}, f);
-  const float *mp = means.data_ptr<float>(), *sp = scales.data_ptr<float>(), *qp = quats.data_ptr<float>(),
-              *op = opacities.data_ptr<float>();
-  const float *gm2 = g_means2d.data_ptr<float>(), *gcn = g_conics.data_ptr<float>(),
-              *gdp = g_depths.data_ptr<float>(), *gop = g_opac.data_ptr<float>();
-  float *gmp = gm.data_ptr<float>(), *gsp = gs.data_ptr<float>(), *gqp = gq.data_ptr<float>(),
-        *gop_out = go.data_ptr<float>();
   const double* R = cam.R;
-#pragma omp parallel for schedule(static, 1024)
+#pragma omp parallel for schedule(static, 1024) num_threads(nthreads)
   for (int64_t i = 0; i < n; ++i) {
     const Geo g = compute(cam, mp + 3 * i, sp + 3 * i, qp + 4 * i, op[i]);
     for (int k = 0; k < 3; ++k) gmp[3 * i + k] = gsp[3 * i + k] = 0.f;
@@ -240,5 +215,4 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor s
       for (int k = 0; k < 4; ++k) gqp[4 * i + k] = float((gq4[k] - g.qn[k] * dot) / g.qnorm);
     }
   }
-  return {gm, gs, gq, go};
 }

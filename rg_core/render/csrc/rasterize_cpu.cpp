@@ -3,7 +3,10 @@
 //
 // Same function as rg_core/render/reference.py (tests bind the two). Pixel centres are at integer
 // coordinates; conics hold (a, b, c) of the inverse 2D covariance [[a, b], [b, c]].
-#include <torch/extension.h>
+//
+// Plain C++ with a C ABI (no torch headers: it builds in seconds); rg_core/render/fast_cpu.py
+// allocates every array with torch and passes pointers through ctypes. Arrays are C-contiguous.
+#include <cstdint>
 
 #include <algorithm>
 #include <cmath>
@@ -20,14 +23,6 @@ constexpr float kAlphaMin = 1.0f / 255.0f;  // skip contributions below this (3D
 constexpr float kAlphaMax = 0.99f;          // keeps 1 - alpha >= 0.01 for the backward division
 constexpr float kTMin = 1e-4f;              // stop once transmittance would fall below this
 
-int num_threads() {
-#ifdef _OPENMP
-  return omp_get_max_threads();
-#else
-  return 1;
-#endif
-}
-
 int thread_id() {
 #ifdef _OPENMP
   return omp_get_thread_num();
@@ -36,16 +31,12 @@ int thread_id() {
 #endif
 }
 
-struct Binning {
-  std::vector<int64_t> offsets;  // [T + 1]
-  std::vector<int32_t> gids;     // [M], per tile sorted by (depth, id)
-};
-
-Binning bin_tiles(const float* means2d, const int32_t* radii, const float* depths, int64_t n,
-                  int width, int height, int tile) {
+// Tile rectangle [x0, x1, y0, y1] (inclusive tile indices; x0 > x1 when empty) of each Gaussian
+// into rect [N, 4], the list offsets [T + 1] into offsets; returns the total list length M.
+int64_t bin_count(const float* means2d, const int32_t* radii, int64_t n, int width, int height, int tile,
+                  int32_t* rect, int64_t* offsets) {
   const int tiles_x = (width + tile - 1) / tile, tiles_y = (height + tile - 1) / tile;
   const int64_t n_tiles = int64_t(tiles_x) * tiles_y;
-  std::vector<int32_t> rect(4 * n);
   std::vector<int64_t> counts(n_tiles + 1, 0);
   for (int64_t i = 0; i < n; ++i) {
     int32_t* r = &rect[4 * i];
@@ -62,22 +53,26 @@ Binning bin_tiles(const float* means2d, const int32_t* radii, const float* depth
     for (int ty = r[2]; ty <= r[3]; ++ty)
       for (int tx = r[0]; tx <= r[1]; ++tx) counts[int64_t(ty) * tiles_x + tx + 1]++;
   }
-  Binning b;
-  b.offsets.resize(n_tiles + 1);
-  std::partial_sum(counts.begin(), counts.end(), b.offsets.begin());
-  b.gids.resize(b.offsets[n_tiles]);
-  std::vector<int64_t> cursor(b.offsets.begin(), b.offsets.end() - 1);
+  std::partial_sum(counts.begin(), counts.end(), offsets);
+  return offsets[n_tiles];
+}
+
+// Fills gids [M]: per tile the Gaussians touching it, sorted by (depth, id).
+void bin_fill(const int32_t* rect, const float* depths, int64_t n, int width, int height, int tile,
+              const int64_t* offsets, int32_t* gids, int nthreads) {
+  const int tiles_x = (width + tile - 1) / tile, tiles_y = (height + tile - 1) / tile;
+  const int64_t n_tiles = int64_t(tiles_x) * tiles_y;
+  std::vector<int64_t> cursor(offsets, offsets + n_tiles);
   for (int64_t i = 0; i < n; ++i) {  // ascending id: lists start in id order (stable)
     const int32_t* r = &rect[4 * i];
     for (int ty = r[2]; ty <= r[3]; ++ty)
-      for (int tx = r[0]; tx <= r[1]; ++tx) b.gids[cursor[int64_t(ty) * tiles_x + tx]++] = int32_t(i);
+      for (int tx = r[0]; tx <= r[1]; ++tx) gids[cursor[int64_t(ty) * tiles_x + tx]++] = int32_t(i);
   }
-#pragma omp parallel for schedule(dynamic, 4)
+#pragma omp parallel for schedule(dynamic, 4) num_threads(nthreads)
   for (int64_t t = 0; t < n_tiles; ++t) {
-    std::stable_sort(b.gids.begin() + b.offsets[t], b.gids.begin() + b.offsets[t + 1],
+    std::stable_sort(gids + offsets[t], gids + offsets[t + 1],
                      [depths](int32_t a, int32_t c) { return depths[a] < depths[c]; });
   }
-  return b;
 }
 
 // Per-Gaussian data of one tile, gathered contiguously (the CPU analogue of shared memory).
@@ -132,44 +127,31 @@ struct Footprint {
 
 }  // namespace
 
-// -> colour [H, W, C], final transmittance [H, W], count of list entries processed [H, W],
-//    id of the largest blending weight [H, W] (-1: none), tile offsets [T + 1], ids [M].
-std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tensor conics,
-                                             torch::Tensor opacities, torch::Tensor colors,
-                                             torch::Tensor radii, torch::Tensor depths, int64_t width,
-                                             int64_t height, int64_t tile, bool poison) {
-  TORCH_CHECK(means2d.dtype() == torch::kFloat32 && conics.dtype() == torch::kFloat32 &&
-                  opacities.dtype() == torch::kFloat32 && colors.dtype() == torch::kFloat32 &&
-                  depths.dtype() == torch::kFloat32 && radii.dtype() == torch::kInt32,
-              "rasterize_forward: float32 inputs and int32 radii expected");
-  means2d = means2d.contiguous(); conics = conics.contiguous(); opacities = opacities.contiguous();
-  colors = colors.contiguous(); radii = radii.contiguous(); depths = depths.contiguous();
-  const int64_t n = means2d.size(0), C = colors.size(1);
-  const int W = int(width), H = int(height), TS = int(tile);
-  const int tiles_x = (W + TS - 1) / TS;
-  Binning bins = bin_tiles(means2d.data_ptr<float>(), radii.data_ptr<int32_t>(), depths.data_ptr<float>(), n, W,
-                           H, TS);
-  const int64_t n_tiles = int64_t(bins.offsets.size()) - 1;
+extern "C" {
 
-  // Outputs start uninitialised (NaN / garbage ids when `poison`, for tests): every element is
-  // written below, empty tiles included.
-  auto out = torch::empty({H, W, C}, colors.options());
-  auto t_final = torch::empty({H, W}, colors.options());
-  auto n_contrib = torch::empty({H, W}, radii.options());
-  auto max_id = torch::empty({H, W}, radii.options());
-  if (poison) {
-    out.fill_(NAN); t_final.fill_(NAN); n_contrib.fill_(-7); max_id.fill_(-7);
-  }
-  const float* m2 = means2d.data_ptr<float>();
-  const float* cn = conics.data_ptr<float>();
-  const float* op = opacities.data_ptr<float>();
-  const float* col = colors.data_ptr<float>();
-  float* out_p = out.data_ptr<float>();
-  float* tf_p = t_final.data_ptr<float>();
-  int32_t* nc_p = n_contrib.data_ptr<int32_t>();
-  int32_t* id_p = max_id.data_ptr<int32_t>();
+int64_t rg_bin_count(const float* means2d, const int32_t* radii, int64_t n, int width, int height, int tile,
+                     int32_t* rect, int64_t* offsets) {
+  return bin_count(means2d, radii, n, width, height, tile, rect, offsets);
+}
 
-#pragma omp parallel
+void rg_bin_fill(const int32_t* rect, const float* depths, int64_t n, int width, int height, int tile,
+                 const int64_t* offsets, int32_t* gids, int nthreads) {
+  bin_fill(rect, depths, n, width, height, tile, offsets, gids, nthreads);
+}
+
+// Inputs: means2d [N, 2], conics [N, 3], opacities [N], colors [N, C] (float32), the bins above.
+// Writes colour [H, W, C], final transmittance [H, W], count of list entries processed [H, W], id of
+// the largest blending weight [H, W] (-1: none). Every element is written, empty tiles included
+// (tests fill the outputs with NaN first).
+void rg_rasterize_forward(const float* m2, const float* cn, const float* op, const float* col, int64_t n,
+                          int64_t C, int width, int height, int tile, const int64_t* offsets,
+                          const int32_t* gids, float* out_p, float* tf_p, int32_t* nc_p, int32_t* id_p,
+                          int nthreads) {
+  (void)n;
+  const int W = width, H = height, TS = tile;
+  const int tiles_x = (W + TS - 1) / TS, tiles_y = (H + TS - 1) / TS;
+  const int64_t n_tiles = int64_t(tiles_x) * tiles_y;
+#pragma omp parallel num_threads(nthreads)
   {
     TileData td;
     std::vector<float> T, best_w;
@@ -177,8 +159,8 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
     std::vector<uint8_t> done;
 #pragma omp for schedule(dynamic, 1)
     for (int64_t t = 0; t < n_tiles; ++t) {
-      const int64_t s = bins.offsets[t], k = bins.offsets[t + 1] - s;
-      const int32_t* ids = bins.gids.data() + s;
+      const int64_t s = offsets[t], k = offsets[t + 1] - s;
+      const int32_t* ids = gids + s;
       td.load(ids, k, m2, cn, op);
       const int ty = int(t / tiles_x), tx = int(t % tiles_x);
       const int y0 = ty * TS, y1 = std::min(y0 + TS, H), x0 = tx * TS, x1 = std::min(x0 + TS, W);
@@ -225,43 +207,25 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
       }
     }
   }
-  auto offsets = torch::from_blob(bins.offsets.data(), {n_tiles + 1}, torch::kInt64).clone();
-  auto gids = torch::from_blob(bins.gids.data(), {int64_t(bins.gids.size())}, torch::kInt32).clone();
-  return {out, t_final, n_contrib, max_id, offsets, gids};
 }
 
-// Gradients w.r.t. means2d [N, 2], conics [N, 3], opacities [N], colors [N, C], given dL/dcolour
-// [H, W, C] and dL/d(accumulated alpha) [H, W]. Walks each pixel's list back to front.
-std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tensor conics,
-                                              torch::Tensor opacities, torch::Tensor colors,
-                                              torch::Tensor offsets, torch::Tensor gids,
-                                              torch::Tensor t_final, torch::Tensor n_contrib,
-                                              torch::Tensor grad_out, torch::Tensor grad_alpha,
-                                              int64_t width, int64_t height, int64_t tile, bool poison) {
-  means2d = means2d.contiguous(); conics = conics.contiguous(); opacities = opacities.contiguous();
-  colors = colors.contiguous(); grad_out = grad_out.contiguous(); grad_alpha = grad_alpha.contiguous();
-  const int64_t n = means2d.size(0), C = colors.size(1);
-  const int W = int(width), H = int(height), TS = int(tile);
-  const int tiles_x = (W + TS - 1) / TS;
-  const int64_t n_tiles = offsets.size(0) - 1;
-  const int64_t* off = offsets.data_ptr<int64_t>();
-  const int32_t* gid = gids.data_ptr<int32_t>();
-  const float* m2 = means2d.data_ptr<float>();
-  const float* cn = conics.data_ptr<float>();
-  const float* op = opacities.data_ptr<float>();
-  const float* col = colors.data_ptr<float>();
-  const float* tf = t_final.data_ptr<float>();
-  const int32_t* nc = n_contrib.data_ptr<int32_t>();
-  const float* go = grad_out.data_ptr<float>();
-  const float* ga = grad_alpha.data_ptr<float>();
-
+// Gradients w.r.t. means2d [N, 2], conics [N, 3], opacities [N], colors [N, C] into grads [N, 6 + C]
+// (du, dv, da, db, dc, do, dcolor x C), given dL/dcolour [H, W, C] and dL/d(accumulated alpha) [H, W].
+// Walks each pixel's list back to front.
+void rg_rasterize_backward(const float* m2, const float* cn, const float* op, const float* col, int64_t n,
+                           int64_t C, int width, int height, int tile, const int64_t* off, const int32_t* gid,
+                           const float* tf, const int32_t* nc, const float* go, const float* ga, float* tp,
+                           int nthreads) {
+  const int W = width, H = height, TS = tile;
+  const int tiles_x = (W + TS - 1) / TS, tiles_y = (H + TS - 1) / TS;
+  const int64_t n_tiles = int64_t(tiles_x) * tiles_y;
   // One gradient buffer per thread, summed in thread order: no atomics, deterministic for a fixed
-  // thread count. Layout per Gaussian: [du, dv, da, db, dc, do, dcolor x C].
-  const int nt = num_threads();
+  // thread count.
+  const int nt = std::max(nthreads, 1);
   const int64_t stride = 6 + C;
   std::vector<std::vector<float>> bufs(nt);
 
-#pragma omp parallel
+#pragma omp parallel num_threads(nt)
   {
     std::vector<float>& g = bufs[thread_id()];
     g.assign(n * stride, 0.0f);
@@ -337,36 +301,16 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tens
       }
     }
   }
-  auto total = torch::empty({n, stride}, colors.options());
-  if (poison) total.fill_(NAN);
-  float* tp = total.data_ptr<float>();
   bool first = true;
   for (int i = 0; i < nt; ++i) {
     if (bufs[i].size() != size_t(n * stride)) continue;  // a thread the runtime did not start
     const float* b = bufs[i].data();
     const bool assign = first;
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(static) num_threads(nt)
     for (int64_t e = 0; e < n * stride; ++e) tp[e] = assign ? b[e] : tp[e] + b[e];
     first = false;
   }
-  if (first) total.zero_();
-  return {total.slice(1, 0, 2).contiguous(), total.slice(1, 2, 5).contiguous(), total.select(1, 5).contiguous(),
-          total.slice(1, 6, stride).contiguous()};
+  if (first) std::fill_n(tp, n * stride, 0.0f);
 }
 
-// project_cpu.cpp
-std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
-                                           torch::Tensor opacities, torch::Tensor w2c, torch::Tensor K,
-                                           int64_t width, int64_t height, double near, double far, double eps2d);
-std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor scales, torch::Tensor quats,
-                                            torch::Tensor opacities, torch::Tensor w2c, torch::Tensor K,
-                                            int64_t width, int64_t height, double near, double far, double eps2d,
-                                            torch::Tensor g_means2d, torch::Tensor g_conics, torch::Tensor g_depths,
-                                            torch::Tensor g_opac);
-
-PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("project_forward", &project_forward, "EWA projection forward (CPU)");
-  m.def("project_backward", &project_backward, "EWA projection backward (CPU)");
-  m.def("rasterize_forward", &rasterize_forward, "Gaussian rasterization forward (CPU)");
-  m.def("rasterize_backward", &rasterize_backward, "Gaussian rasterization backward (CPU)");
-}
+}  // extern "C"
