@@ -1,25 +1,37 @@
 """Rasterizer speed: reference (pure torch) vs fast CPU path, in one run, as medians and ratios.
 
-    python benchmarks/bench_rasterize.py [--repeats 5] [--json]
+    python benchmarks/bench_rasterize.py [--repeats 5] [--json] [--baseline-code DIR [--rounds 3]]
+                                         [--png bench_out/rasterize.png]
 
 Cases (a) 20k Gaussians 160x120 and (b) 100k Gaussians 320x240, 36 channels each, on a synthetic
 cloud seen by one camera, then a growth check: time against Gaussians x covered pixels.
 Peak memory is the process's peak RSS after each stage (ru_maxrss).
+
+--baseline-code DIR: a checkout of older code with its kernels built (`python setup.py build_ext
+--inplace` there); each case is timed in fresh processes that alternate between that code and this
+one, `--rounds` times, and the medians are reported with the ratio new / baseline (the machine may
+be shared: the ratio is the figure to trust).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[1]
+# the code under test: this checkout, or a baseline's (worker processes, --baseline-code)
+sys.path.insert(0, os.environ.get("RG_BENCH_CODE") or str(ROOT))
 from rg_core.render import Camera, rasterize  # noqa: E402
 from rg_core.util import peak_rss_mb  # noqa: E402
+
+CASES = {"a_20k_160x120": (20_000, 160, 120), "b_100k_320x240": (100_000, 320, 240)}
 
 
 def make_scene(n: int, width: int, height: int, channels: int, seed: int = 0, scale: float = 1.0):
@@ -65,14 +77,86 @@ def time_backend(params, cam, backend: str, repeats: int) -> dict:
     return res
 
 
+def worker(label: str, repeats: int) -> dict:
+    """One case on the fast path of the code in sys.path[0] (a fresh process per call)."""
+    n, w, h = CASES[label]
+    params, cam = make_scene(n, w, h, 36)
+    return time_backend(params, cam, "cpu", repeats)
+
+
+def against_baseline(base: Path, rounds: int, repeats: int) -> dict:
+    """Fresh processes alternating baseline / new code per case; medians over rounds and the ratio."""
+    out = {}
+    for label in CASES:
+        runs = {"baseline": [], "new": []}
+        for r in range(rounds):
+            for name, code in (("baseline", base), ("new", ROOT)):
+                env = dict(os.environ, RG_BENCH_CODE=str(code))
+                res = subprocess.run([sys.executable, __file__, "--worker", label, "--repeats", str(repeats)],
+                                     env=env, capture_output=True, text=True, timeout=900)
+                if res.returncode != 0:
+                    raise RuntimeError(f"{name} worker ({code}) failed: {res.stderr[-2000:]}")
+                runs[name].append(json.loads(res.stdout.strip().splitlines()[-1]))
+        med = {name: {k: round(statistics.median(x[k] for x in rs), 2) for k in ("forward_ms", "forward_backward_ms")}
+               for name, rs in runs.items()}
+        out[label] = {**med, "rounds": rounds,
+                      "ratio_forward": round(med["new"]["forward_ms"] / med["baseline"]["forward_ms"], 3),
+                      "ratio_forward_backward": round(med["new"]["forward_backward_ms"]
+                                                      / med["baseline"]["forward_backward_ms"], 3)}
+        print(f"{label}: baseline fwd {med['baseline']['forward_ms']} / fwd+bwd {med['baseline']['forward_backward_ms']}"
+              f" ms, new {med['new']['forward_ms']} / {med['new']['forward_backward_ms']} ms: ratio new/baseline "
+              f"{out[label]['ratio_forward']} / {out[label]['ratio_forward_backward']} (medians of {rounds} "
+              "alternating runs)", file=sys.stderr)
+    return out
+
+
+def plot(report: dict, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = list(report["cases"])
+    fig, axes = plt.subplots(1, len(labels), figsize=(5 * len(labels), 3.6))
+    for ax, label in zip(axes, labels):
+        c = report["cases"][label]
+        bars = {"fast": c["fast"]}
+        if "baseline" in report:
+            bars = {"baseline": report["baseline"][label]["baseline"], "new": report["baseline"][label]["new"]}
+        names = list(bars)
+        for i, key in enumerate(("forward_ms", "forward_backward_ms")):
+            vals = [bars[k][key] for k in names]
+            xs = [j + 0.38 * i for j in range(len(names))]
+            ax.bar(xs, vals, width=0.36, label=key.replace("_ms", "").replace("_", "+"))
+            for x, v in zip(xs, vals):
+                ax.text(x, v, f"{v:.0f}", ha="center", va="bottom", fontsize=8)
+        ax.set_xticks([j + 0.19 for j in range(len(names))], names)
+        ax.set_ylabel("ms (median)")
+        ax.set_title(label)
+        ax.legend(fontsize=8)
+    fig.suptitle(f"fast CPU rasterizer, 36 channels, {report['threads']} threads")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--ref-repeats", type=int, default=1, help="repeats for the slow reference")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--baseline-code", help="checkout of older code (kernels built in place) to compare with")
+    ap.add_argument("--rounds", type=int, default=3, help="alternating baseline/new runs per case")
+    ap.add_argument("--png", default="", help="bar chart of the timings")
+    ap.add_argument("--worker", choices=list(CASES), help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.worker:
+        print(json.dumps(worker(args.worker, args.repeats)))
+        return 0
     report = {"threads": torch.get_num_threads(), "cases": {}}
-    for label, n, w, h in (("a_20k_160x120", 20_000, 160, 120), ("b_100k_320x240", 100_000, 320, 240)):
+    if args.baseline_code:
+        report["baseline"] = against_baseline(Path(args.baseline_code).resolve(), args.rounds, args.repeats)
+    for label, (n, w, h) in CASES.items():
         params, cam = make_scene(n, w, h, 36)
         fast = time_backend(params, cam, "cpu", args.repeats)
         ref = time_backend(params, cam, "reference", args.ref_repeats)
@@ -102,6 +186,9 @@ def main() -> int:
     report["growth"] = {"points": growth, "exponent_vs_gaussians_x_pixels": round(slope, 3)}
     print(f"growth exponent of fwd+bwd time vs Gaussians x covered pixels: {slope:.3f}", file=sys.stderr)
     report["peak_rss_mb"] = round(peak_rss_mb(), 1)
+    if args.png:
+        plot(report, Path(args.png))
+        print(f"plot: {args.png}", file=sys.stderr)
     if args.json:
         print(json.dumps(report))
     return 0

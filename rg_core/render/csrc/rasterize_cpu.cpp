@@ -23,13 +23,6 @@ constexpr float kAlphaMin = 1.0f / 255.0f;  // skip contributions below this (3D
 constexpr float kAlphaMax = 0.99f;          // keeps 1 - alpha >= 0.01 for the backward division
 constexpr float kTMin = 1e-4f;              // stop once transmittance would fall below this
 
-int thread_id() {
-#ifdef _OPENMP
-  return omp_get_thread_num();
-#else
-  return 0;
-#endif
-}
 
 // Tile rectangle [x0, x1, y0, y1] (inclusive tile indices; x0 > x1 when empty) of each Gaussian
 // into rect [N, 4], the list offsets [T + 1] into offsets; returns the total list length M.
@@ -94,11 +87,16 @@ struct TileData {
 };
 
 // Pixels of one tile row where a Gaussian can reach alpha >= 1/255, from its conic: the row's
-// solutions of a dx^2 + 2 b dx dy + c dy^2 <= -2 thr, widened by one pixel on each side. Pixels
-// outside are exactly those the per-pixel test would skip, so visiting only these spans changes
-// nothing but the time. Returns false if the row has none.
+// solutions of a dx^2 + 2 b dx dy + c dy^2 <= -2 thr, widened by kSpanMargin pixels on each side.
+// Pixels outside are exactly those the per-pixel test would skip, so visiting only these spans
+// changes nothing but the time. The margin covers float32 rounding of the per-pixel power, which is
+// far below it: eps2d keeps a, c <= 1 / eps2d, so the power's slope across the boundary is bounded
+// and its rounding moves the boundary by ~1e-5 px. (A margin of one pixel visited 2-3x the pixels of
+// a small Gaussian's footprint for nothing.) Returns false if the row has none.
+constexpr double kSpanMargin = 0.05;
+
 struct Footprint {
-  double u, v, a, b, c, q, det, dy_max;
+  double u, v, a, b, c, q, det, dy_max, inv_a;
   bool degenerate;
   Footprint(const TileData& td, int64_t j) {
     u = td.u[j]; v = td.v[j]; a = td.a[j]; b = td.b[j]; c = td.c[j];
@@ -106,11 +104,12 @@ struct Footprint {
     det = a * c - b * b;
     degenerate = !(det > 0.0) || !(a > 0.0) || !(q > 0.0);  // then visit the whole tile
     dy_max = degenerate ? 0.0 : std::sqrt(q * a / det);
+    inv_a = degenerate ? 0.0 : 1.0 / a;
   }
   void rows(int y0, int y1, int& r0, int& r1) const {  // [r0, r1) within [y0, y1)
     if (degenerate) { r0 = y0; r1 = y1; return; }
-    r0 = std::max(y0, int(std::max(std::ceil(v - dy_max) - 1.0, -1.0)));
-    r1 = std::min(y1, int(std::min(std::floor(v + dy_max) + 2.0, 1e9)));
+    r0 = std::max(y0, int(std::max(std::ceil(v - dy_max - kSpanMargin), -1.0)));
+    r1 = std::min(y1, int(std::min(std::floor(v + dy_max + kSpanMargin) + 1.0, 1e9)));
   }
   bool cols(int py, int x0, int x1, int& c0, int& c1) const {  // [c0, c1) within [x0, x1)
     if (degenerate) { c0 = x0; c1 = x1; return true; }
@@ -118,9 +117,9 @@ struct Footprint {
     const double disc = q * a - det * dy * dy;
     if (disc < 0.0) return false;
     const double sq = std::sqrt(disc);
-    const double lo = u - (-b * dy + sq) / a, hi = u - (-b * dy - sq) / a;
-    c0 = std::max(x0, int(std::max(std::ceil(lo) - 1.0, -1.0)));
-    c1 = std::min(x1, int(std::min(std::floor(hi) + 2.0, 1e9)));
+    const double lo = u - (-b * dy + sq) * inv_a, hi = u - (-b * dy - sq) * inv_a;
+    c0 = std::max(x0, int(std::max(std::ceil(lo - kSpanMargin), -1.0)));
+    c1 = std::min(x1, int(std::min(std::floor(hi + kSpanMargin) + 1.0, 1e9)));
     return c0 < c1;
   }
 };
@@ -154,8 +153,8 @@ void rg_rasterize_forward(const float* m2, const float* cn, const float* op, con
 #pragma omp parallel num_threads(nthreads)
   {
     TileData td;
-    std::vector<float> T, best_w;
-    std::vector<int32_t> best, last;
+    std::vector<float> T, best_w, acc;
+    std::vector<int32_t> best, last, row_done;
     std::vector<uint8_t> done;
 #pragma omp for schedule(dynamic, 1)
     for (int64_t t = 0; t < n_tiles; ++t) {
@@ -166,7 +165,11 @@ void rg_rasterize_forward(const float* m2, const float* cn, const float* op, con
       const int y0 = ty * TS, y1 = std::min(y0 + TS, H), x0 = tx * TS, x1 = std::min(x0 + TS, W);
       const int tw = x1 - x0, P = tw * (y1 - y0);
       T.assign(P, 1.0f); best_w.assign(P, 0.0f); best.assign(P, -1); last.assign(P, 0); done.assign(P, 0);
-      for (int py = y0; py < y1; ++py) std::fill_n(out_p + (int64_t(py) * W + x0) * C, int64_t(tw) * C, 0.0f);
+      row_done.assign(y1 - y0, 0);  // per tile row: pixels already done (saturated rows are skipped)
+      // colour accumulates in a tile-local buffer (L1-sized at 16 x 16 x 36), copied out at the end
+      acc.assign(int64_t(P) * C, 0.0f);
+      float* __restrict acc_p = acc.data();
+      float* __restrict Tp = T.data();
       int n_done = 0;
       // Gaussian-major: each Gaussian visits only its footprint; every pixel still sees the
       // Gaussians in depth order with the same tests as the per-pixel definition.
@@ -174,31 +177,37 @@ void rg_rasterize_forward(const float* m2, const float* cn, const float* op, con
         const Footprint fp(td, j);
         int r0, r1;
         fp.rows(y0, y1, r0, r1);
-        const float* cg = col + int64_t(ids[j]) * C;
+        const float* __restrict cg = col + int64_t(ids[j]) * C;
+        const float uj = td.u[j], vj = td.v[j], aj = td.a[j], bj = td.b[j], cj = td.c[j], oj = td.o[j];
+        const float thrj = td.thr[j];
+        const int32_t gid_j = ids[j];
         for (int py = r0; py < r1; ++py) {
           int c0, c1;
-          if (!fp.cols(py, x0, x1, c0, c1)) continue;
-          const float fy = float(py);
+          if (row_done[py - y0] == tw || !fp.cols(py, x0, x1, c0, c1)) continue;
+          const float dy = vj - float(py);
+          const int prow = (py - y0) * tw - x0;
           for (int px = c0; px < c1; ++px) {
-            const int p = (py - y0) * tw + (px - x0);
+            const int p = prow + px;
             if (done[p]) continue;
-            const float dx = td.u[j] - float(px), dy = td.v[j] - fy;
-            const float power = -0.5f * (td.a[j] * dx * dx + td.c[j] * dy * dy) - td.b[j] * dx * dy;
-            if (power > 0.0f || power < td.thr[j]) continue;
-            const float alpha = std::min(kAlphaMax, td.o[j] * std::exp(power));
+            const float dx = uj - float(px);
+            const float power = -0.5f * (aj * dx * dx + cj * dy * dy) - bj * dx * dy;
+            if (power > 0.0f || power < thrj) continue;
+            const float alpha = std::min(kAlphaMax, oj * std::exp(power));
             if (alpha < kAlphaMin) continue;
-            const float next_T = T[p] * (1.0f - alpha);
-            if (next_T < kTMin) { done[p] = 1; ++n_done; continue; }
-            const float w = alpha * T[p];
-            float* o_pix = out_p + (int64_t(py) * W + px) * C;
+            const float Tc = Tp[p];
+            const float next_T = Tc * (1.0f - alpha);
+            if (next_T < kTMin) { done[p] = 1; ++n_done; ++row_done[py - y0]; continue; }
+            const float w = alpha * Tc;
+            float* __restrict o_pix = acc_p + int64_t(p) * C;
             for (int64_t ch = 0; ch < C; ++ch) o_pix[ch] += w * cg[ch];
-            if (w > best_w[p]) { best_w[p] = w; best[p] = ids[j]; }
-            T[p] = next_T;
+            if (w > best_w[p]) { best_w[p] = w; best[p] = gid_j; }
+            Tp[p] = next_T;
             last[p] = int32_t(j + 1);
           }
         }
       }
       for (int py = y0; py < y1; ++py) {
+        std::copy_n(acc_p + int64_t((py - y0) * tw) * C, int64_t(tw) * C, out_p + (int64_t(py) * W + x0) * C);
         for (int px = x0; px < x1; ++px) {
           const int p = (py - y0) * tw + (px - x0);
           const int64_t pix = int64_t(py) * W + px;
@@ -219,19 +228,24 @@ void rg_rasterize_backward(const float* m2, const float* cn, const float* op, co
   const int W = width, H = height, TS = tile;
   const int tiles_x = (W + TS - 1) / TS, tiles_y = (H + TS - 1) / TS;
   const int64_t n_tiles = int64_t(tiles_x) * tiles_y;
-  // One gradient buffer per thread, summed in thread order: no atomics, deterministic for a fixed
-  // thread count.
+  // Each tile writes the gradient of each of its list entries into its own row of `ent` [M, stride]
+  // (sequential writes, no atomics), then each Gaussian sums its entries in list order: the result
+  // does not depend on the thread count or the schedule. Per-thread [N, stride] buffers cost twice
+  // the time here: zeroing them and the scattered read-modify-writes missed the cache.
   const int nt = std::max(nthreads, 1);
   const int64_t stride = 6 + C;
-  std::vector<std::vector<float>> bufs(nt);
+  const int64_t M = off[n_tiles];
+  static thread_local std::vector<float> ent;  // reused between calls (no page faults per call)
+  static thread_local std::vector<int64_t> g_off, g_ent;
+  if (int64_t(ent.size()) < M * stride) ent.resize(M * stride);
+  float* const ent_p = ent.data();
 
 #pragma omp parallel num_threads(nt)
   {
-    std::vector<float>& g = bufs[thread_id()];
-    g.assign(n * stride, 0.0f);
     TileData td;
     std::vector<float> T, S, acc(stride);
-#pragma omp for schedule(static, 1)
+    std::vector<int> row_nc;
+#pragma omp for schedule(dynamic, 1)
     for (int64_t t = 0; t < n_tiles; ++t) {
       const int64_t s = off[t], k = off[t + 1] - s;
       if (k == 0) continue;
@@ -243,74 +257,98 @@ void rg_rasterize_backward(const float* m2, const float* cn, const float* op, co
       T.resize(P);
       S.assign(int64_t(P) * C, 0.0f);  // per pixel: sum over Gaussians behind of c_j alpha_j T_j
       int max_nc = 0;
+      row_nc.assign(y1 - y0, 0);  // per tile row: the longest list prefix any pixel used
       for (int py = y0; py < y1; ++py)
         for (int px = x0; px < x1; ++px) {
           const int64_t pix = int64_t(py) * W + px;
           T[(py - y0) * tw + (px - x0)] = tf[pix];
-          max_nc = std::max(max_nc, int(nc[pix]));
+          row_nc[py - y0] = std::max(row_nc[py - y0], int(nc[pix]));
         }
+      for (int r : row_nc) max_nc = std::max(max_nc, r);
       // Back to front, Gaussian-major over footprints; per pixel the same sequence as the forward.
+      float* __restrict Tp = T.data();
+      float* __restrict acc_c = acc.data() + 6;
+      std::fill(ent_p + (s + max_nc) * stride, ent_p + (s + k) * stride, 0.0f);  // never reached
       for (int64_t j = int64_t(max_nc) - 1; j >= 0; --j) {
         const Footprint fp(td, j);
         int r0, r1;
         fp.rows(y0, y1, r0, r1);
         const int32_t gi = ids[j];
-        const float* cg = col + int64_t(gi) * C;
+        const float* __restrict cg = col + int64_t(gi) * C;
+        const float uj = td.u[j], vj = td.v[j], aj = td.a[j], bj = td.b[j], cj = td.c[j], oj = td.o[j];
+        const float thrj = td.thr[j];
+        float g_u = 0.f, g_v = 0.f, g_a = 0.f, g_b = 0.f, g_c = 0.f, g_o = 0.f;
         bool touched = false;
         for (int py = r0; py < r1; ++py) {
           int c0, c1;
-          if (!fp.cols(py, x0, x1, c0, c1)) continue;
-          const float fy = float(py);
+          if (j >= row_nc[py - y0] || !fp.cols(py, x0, x1, c0, c1)) continue;
+          const float dy = vj - float(py);
           for (int px = c0; px < c1; ++px) {
             const int64_t pix = int64_t(py) * W + px;
             if (j >= nc[pix]) continue;
             const int p = (py - y0) * tw + (px - x0);
-            const float dx = td.u[j] - float(px), dy = td.v[j] - fy;
-            const float power = -0.5f * (td.a[j] * dx * dx + td.c[j] * dy * dy) - td.b[j] * dx * dy;
-            if (power > 0.0f || power < td.thr[j]) continue;
+            const float dx = uj - float(px);
+            const float power = -0.5f * (aj * dx * dx + cj * dy * dy) - bj * dx * dy;
+            if (power > 0.0f || power < thrj) continue;
             const float vis = std::exp(power);
-            const float raw = td.o[j] * vis;
+            const float raw = oj * vis;
             const float alpha = std::min(kAlphaMax, raw);
             if (alpha < kAlphaMin) continue;
             if (!touched) { std::fill(acc.begin(), acc.end(), 0.0f); touched = true; }
             const float inv = 1.0f / (1.0f - alpha);
-            T[p] *= inv;  // transmittance in front of Gaussian j
-            const float w = alpha * T[p];
-            const float* gout = go + pix * C;
-            float* Sp = S.data() + int64_t(p) * C;
-            float dL_dalpha = ga[pix] * tf[pix] * inv;
+            const float Tj = Tp[p] * inv;  // transmittance in front of Gaussian j
+            Tp[p] = Tj;
+            const float w = alpha * Tj;
+            const float* __restrict gout = go + pix * C;
+            float* __restrict Sp = S.data() + int64_t(p) * C;
+            float dot = 0.f;
+#pragma omp simd reduction(+ : dot)
+            for (int64_t ch = 0; ch < C; ++ch) dot += gout[ch] * (Tj * cg[ch] - Sp[ch] * inv);
             for (int64_t ch = 0; ch < C; ++ch) {
-              acc[6 + ch] += w * gout[ch];
-              dL_dalpha += gout[ch] * (T[p] * cg[ch] - Sp[ch] * inv);
+              acc_c[ch] += w * gout[ch];
               Sp[ch] += w * cg[ch];
             }
             if (raw > kAlphaMax) continue;  // clamped alpha: no gradient to opacity or shape
+            const float dL_dalpha = ga[pix] * tf[pix] * inv + dot;
             const float dL_dpower = dL_dalpha * alpha;
-            acc[5] += dL_dalpha * vis;
-            acc[2] += dL_dpower * (-0.5f * dx * dx);
-            acc[3] += dL_dpower * (-dx * dy);
-            acc[4] += dL_dpower * (-0.5f * dy * dy);
-            acc[0] += dL_dpower * (-(td.a[j] * dx + td.b[j] * dy));
-            acc[1] += dL_dpower * (-(td.c[j] * dy + td.b[j] * dx));
+            g_o += dL_dalpha * vis;
+            g_a += dL_dpower * (-0.5f * dx * dx);
+            g_b += dL_dpower * (-dx * dy);
+            g_c += dL_dpower * (-0.5f * dy * dy);
+            g_u += dL_dpower * (-(aj * dx + bj * dy));
+            g_v += dL_dpower * (-(cj * dy + bj * dx));
           }
         }
+        float* __restrict row = ent_p + (s + j) * stride;
         if (touched) {
-          float* gb = g.data() + int64_t(gi) * stride;
-          for (int64_t e = 0; e < stride; ++e) gb[e] += acc[e];
+          acc[0] = g_u; acc[1] = g_v; acc[2] = g_a; acc[3] = g_b; acc[4] = g_c; acc[5] = g_o;
+          std::copy_n(acc.data(), stride, row);
+        } else {
+          std::fill_n(row, stride, 0.0f);
         }
       }
     }
   }
-  bool first = true;
-  for (int i = 0; i < nt; ++i) {
-    if (bufs[i].size() != size_t(n * stride)) continue;  // a thread the runtime did not start
-    const float* b = bufs[i].data();
-    const bool assign = first;
-#pragma omp parallel for schedule(static) num_threads(nt)
-    for (int64_t e = 0; e < n * stride; ++e) tp[e] = assign ? b[e] : tp[e] + b[e];
-    first = false;
+  // entries of each Gaussian (CSR by counting), in list order
+  g_off.assign(n + 1, 0);
+  g_ent.resize(M);
+  for (int64_t e = 0; e < M; ++e) g_off[gid[e] + 1]++;
+  for (int64_t i = 0; i < n; ++i) g_off[i + 1] += g_off[i];
+  {
+    std::vector<int64_t> cur(g_off.begin(), g_off.end() - 1);
+    for (int64_t e = 0; e < M; ++e) g_ent[cur[gid[e]]++] = e;
   }
-  if (first) std::fill_n(tp, n * stride, 0.0f);
+  const int64_t* go_p = g_off.data();
+  const int64_t* ge_p = g_ent.data();
+#pragma omp parallel for schedule(static, 256) num_threads(nt)
+  for (int64_t i = 0; i < n; ++i) {
+    float* __restrict out = tp + i * stride;
+    std::fill_n(out, stride, 0.0f);
+    for (int64_t q = go_p[i]; q < go_p[i + 1]; ++q) {
+      const float* __restrict row = ent_p + ge_p[q] * stride;
+      for (int64_t e = 0; e < stride; ++e) out[e] += row[e];
+    }
+  }
 }
 
 }  // extern "C"
