@@ -188,3 +188,24 @@ def test_fresh_context_per_test_also_works(ros_context):
         assert res is not None and res.success and len(res.objects) == 2
     finally:
         close()
+
+
+@pytest.mark.parametrize("msg", ["TFMessage", "TF2Error"])
+def test_tf2_msgs_type_hash_matches_kilted(msg):
+    """The tf2_msgs this project builds (msg_tf2/, when no tf2_msgs is importable) or the one a full
+    ROS 2 install brings must carry Kilted's type hash, or real graphs and bags would not talk to the node."""
+    import json
+
+    pytest.importorskip("tf2_msgs.msg")
+    typesys = pytest.importorskip("rosbags.typesys")
+    import sys
+
+    prefixes = [p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p] + [sys.prefix]
+    found = [Path(p) / "share" / "tf2_msgs" / "msg" / f"{msg}.json" for p in prefixes]
+    found = [f for f in found if f.is_file()]
+    assert found, f"no share/tf2_msgs/msg/{msg}.json under {prefixes}"
+    desc = json.loads(found[0].read_text())
+    ours = desc["type_hashes"][0]
+    assert ours["type_name"] == f"tf2_msgs/msg/{msg}"
+    kilted = typesys.get_typestore(typesys.Stores.ROS2_KILTED)
+    assert ours["hash_string"] == kilted.hash_rihs01(f"tf2_msgs/msg/{msg}")
