@@ -1,6 +1,7 @@
 """End to end grounding on the session scene with oracle supervision: the grounded group's box and
 masks match the ground truth; absent and bad queries fail with a reason; masks for any camera."""
 import numpy as np
+import torch
 import pytest
 
 from rg_core.config import RGConfig
@@ -84,3 +85,45 @@ def test_iou_helper():
     a = np.zeros((4, 4), bool)
     a[:2] = True
     assert iou(a, a) == 1.0 and iou(a, ~a) == 0.0 and iou(np.zeros_like(a), np.zeros_like(a)) == 1.0
+
+
+class _ImageReasoner:
+    """The text reasoner behind an image reasoner's interface, recording the picture each call gets."""
+
+    def __init__(self, accepts_images=True):
+        from rg_core.perception.reasoner import TextReasoner
+
+        self.inner, self.accepts_images, self.images = TextReasoner(), accepts_images, []
+
+    def reason(self, query, vocabulary, image=None, mode="auto"):
+        self.images.append(image)
+        return self.inner.reason(query, vocabulary, image=None, mode=mode)
+
+
+def test_image_reasoner_is_shown_the_scene(oracle_field, synth_scene):
+    """An LVLM reasoner gets keyframes of the map (2 x 2 tiles of the first, last and evenly spaced
+    keyframes, exact pixels) for implicit queries; explicit queries and text-only reasoners get none."""
+    field, embed = oracle_field
+    rs = _ImageReasoner()
+    g = Grounder(field.mapper, field, RGConfig(), reasoner=rs, text_encoder=embed,
+                 scene_names=[o.name for o in synth_scene.objects])
+    obj = synth_scene.objects[0]
+    r = g.ground(f"the {obj.name}", mode="implicit")
+    assert r.success and r.target == obj.name
+    img = rs.images[-1]
+    kfs = field.mapper.keyframes
+    h, w = kfs[0].rgb.shape[:2]
+    assert isinstance(img, np.ndarray) and img.dtype == np.uint8 and img.shape == (2 * h, 2 * w, 3)
+    picks = [kfs[round(i)] for i in np.linspace(0, len(kfs) - 1, 4)]
+    tiles = [img[:h, :w], img[:h, w:], img[h:, :w], img[h:, w:]]
+    for kf, tile in zip(picks, tiles):
+        np.testing.assert_array_equal(tile, (kf.rgb.clamp(0, 1) * 255).round().to(torch.uint8).numpy())
+    g.ground(obj.name, mode="explicit")
+    assert rs.images[-1] is None
+    text_only = _ImageReasoner(accepts_images=False)
+    Grounder(field.mapper, field, RGConfig(), reasoner=text_only, text_encoder=embed).ground(
+        f"the {obj.name}", mode="implicit")
+    assert text_only.images == [None]
+    # one keyframe: that keyframe alone
+    one = Grounder(type("M", (), {"keyframes": kfs[:1]})(), None, RGConfig(), reasoner=rs, text_encoder=embed)
+    assert one.scene_image().shape == (h, w, 3)

@@ -211,7 +211,11 @@ def recording_proxy(llama_server):
     import json
     import threading
 
-    bodies = []
+    class Recorded(list):  # request bodies; .replies: the server's (status, JSON body) for each
+        replies: list = []
+
+    bodies = Recorded()
+    bodies.replies = []
 
     class Handler(http.server.BaseHTTPRequestHandler):
         def log_message(self, *a):
@@ -227,6 +231,7 @@ def recording_proxy(llama_server):
                     status, out = resp.status, resp.read()
             except urllib.error.HTTPError as exc:
                 status, out = exc.code, exc.read()
+            bodies.replies.append((status, json.loads(out) if out.strip().startswith(b"{") else out))
             self.send_response(status)
             self.send_header("Content-Type", "application/json")
             self.send_header("Content-Length", str(len(out)))
@@ -248,6 +253,7 @@ def test_openai_sends_reference_view_and_asks_for_strict_json(recording_proxy, t
     very pixels given), the JSON response format, the vocabulary in the prompt; the reply is parsed as
     strict JSON (a target from the vocabulary) or the text fallback says why."""
     import base64
+    import json
 
     import cv2
 
@@ -269,9 +275,18 @@ def test_openai_sends_reference_view_and_asks_for_strict_json(recording_proxy, t
     assert np.array_equal(cv2.imdecode(png, cv2.IMREAD_COLOR)[:, :, ::-1], img)  # lossless, RGB order kept
     assert any(p.get("type") == "text" and "a round red fruit" in p["text"] for p in parts)
     # Without image support the same query goes as plain text, no image part.
-    OpenAIChatReasoner(base_url=url, model="smollm2", timeout_s=120, fallback=text).reason("a round red fruit", vocab,
-                                                                                            image=img)
+    r = OpenAIChatReasoner(base_url=url, model="smollm2", timeout_s=120, fallback=text).reason(
+        "a round red fruit", vocab, image=img)
     assert isinstance(bodies[-1]["messages"][1]["content"], str)
+    # The real server's reply is strict JSON (the json_object response format): an object with
+    # object_name and reason, parsed as such; a fallback can only be the vocabulary check after parsing.
+    status, reply = bodies.replies[-1]
+    assert status == 200, reply
+    answer = json.loads(reply["choices"][0]["message"]["content"])
+    assert isinstance(answer, dict) and isinstance(answer.get("object_name"), str) and "reason" in answer, answer
+    _well_formed(r, vocab)
+    if r.fallback_reason is not None:
+        assert "not in the vocabulary" in r.fallback_reason and repr(answer["object_name"]) in r.fallback_reason, r
 
 
 def test_openai_timeout_falls_back(llama_server, text):

@@ -52,8 +52,8 @@ def write_params(path: Path, name: str, **params) -> Path:
     return path
 
 
-def start(args: list[str], log: Path) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "rg_ros.tools", *args], env=dict(os.environ),
+def start(args: list[str], log: Path, **env) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "rg_ros.tools", *args], env=dict(os.environ, **env),
                             stdout=log.open("w"), stderr=subprocess.STDOUT)
 
 
@@ -324,10 +324,18 @@ def test_start_up_map_missing_camera_info_and_sigint_save(h):
     params = write_params(h.tmp / "b.yaml", "rg_node_b", **TOPICS_B, pose_source="topic", load_map=str(h.save_a),
                           features=False,
                           ground_service="/ground_b", save_on_shutdown=True, save_path=str(save_b), map_width=80,
-                          iters_per_keyframe=2, torch_threads=1, status_period=0.3, camera_info_timeout=1.0)
-    node_b = start(["node", "--params", str(params), "--name", "rg_node_b"], log_b)
+                          iters_per_keyframe=2, torch_threads=1, status_period=0.3, camera_info_timeout=1.0,
+                          preset="paper")
+    # the paper preset with an empty model cache: the node starts, says which command fetches the LVLM,
+    # and answers implicit queries with the text reasoner
+    models = h.tmp / "no_models"
+    models.mkdir(exist_ok=True)
+    node_b = start(["node", "--params", str(params), "--name", "rg_node_b"], log_b, RG_MODELS_DIR=str(models))
     try:
         st = wait_for(lambda: h.st("/rg_node_b") or None, 60, "node B status")
+        log = h.log(log_b)
+        assert "preset 'paper' reasons with llava-1.5-7b" in log and "rg models fetch llava-1.5-7b" in log, log[-2000:]
+        assert "implicit queries use the text reasoner" in log
         assert st["keyframes"] == len(loaded.keyframes) and st["gaussians"] == len(loaded.gaussians)
         frames0 = st["frames"]
         # images and poses but no CameraInfo: nothing is mapped, and the log says why

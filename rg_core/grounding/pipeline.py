@@ -113,6 +113,29 @@ class Grounder:
         sset.text_embeddings = dict(zip(texts, enc(texts)))
         return len(texts)
 
+    def scene_image(self, max_views: int = 4) -> np.ndarray:
+        """-> [H, W, 3] uint8 RGB: up to `max_views` keyframes spread evenly over the map's keyframes,
+        tiled 2 x 2 at their working resolution (one keyframe alone when there is one): what an image
+        reasoner is shown of the scene before the target, and so the reference view, is known."""
+        kfs = self.mapper.keyframes
+        if not kfs:
+            raise ValueError("scene_image: the map has no keyframes")
+        pick = [kfs[i] for i in sorted({round(i) for i in np.linspace(0, len(kfs) - 1, min(max_views, len(kfs)))})]
+        h, w = pick[0].rgb.shape[:2]
+        tiles = []
+        for kf in pick:
+            img = (kf.rgb.detach().float().clamp(0, 1) * 255).round().to(torch.uint8).cpu().numpy()  # [h, w, 3]
+            if img.shape[:2] != (h, w):  # keyframes of another working size: fit the first one's
+                import cv2
+
+                img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+            tiles.append(img)
+        if len(tiles) == 1:
+            return tiles[0]
+        tiles += [np.zeros_like(tiles[0])] * (-len(tiles) % 2)
+        rows = [np.concatenate(tiles[i:i + 2], axis=1) for i in range(0, len(tiles), 2)]
+        return np.ascontiguousarray(np.concatenate(rows, axis=0))
+
     def vocabulary(self) -> list[str]:
         self._check_cache()
         sset = self.mapper.supervision
@@ -288,7 +311,10 @@ class Grounder:
         vocab = self.vocabulary()
         if mode != "implicit" and looks_like_name(query) and query.strip() not in vocab:
             vocab.append(query.strip())
-        r = self.reasoner.reason(query, vocab, image=None, mode=mode)
+        # An LVLM sees the scene (the paper's reference view: the target is not known yet, so a few
+        # keyframes spread over the map); text reasoners and explicit queries need no picture.
+        image = self.scene_image() if mode != "explicit" and getattr(self.reasoner, "accepts_images", False) else None
+        r = self.reasoner.reason(query, vocab, image=image, mode=mode)
         t["reason"] = time.perf_counter() - t0
         res = GroundingResult(False, "", query=query, target=r.target, explanation=r.explanation)
         if not r.target:
