@@ -178,5 +178,5 @@ PYBULLET_OBJECTS: tuple[CatalogueEntry, ...] = (
     CatalogueEntry("toys/concave_box.urdf", "toy box", "toy box", (
         "an open container for keeping small toys",
         "a small open crate without a lid",
-        "somewhere to tidy away playthings")),
+        "somewhere to tidy away playthings"), scale=0.06),  # the mesh is 2 m x 2 m x 0.2 m
 )

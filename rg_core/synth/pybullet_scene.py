@@ -33,6 +33,49 @@ def _connect():
     return p, cid
 
 
+def loadable_urdf(urdf: str) -> str:
+    """The URDF to hand pybullet for `urdf` (a pybullet_data-relative or absolute path).
+
+    pybullet_data's toys/concave_box.urdf (the catalogue's "toy box") names a collision file
+    concave_box.cdf that pybullet_data does not ship, and has mass 0, so loadURDF failed ("Cannot
+    load URDF file") for every fallback scene that drew it. Such a URDF is rewritten once into
+    ~/.cache/reasongrounder/urdf/ with the visual mesh, by absolute path, as its collision shape
+    and a small mass; any other URDF is returned unchanged.
+    """
+    import xml.etree.ElementTree as ET
+
+    import pybullet_data
+
+    src = Path(urdf) if Path(urdf).is_absolute() else Path(pybullet_data.getDataPath()) / urdf
+    if not src.is_file():
+        return urdf
+    root = ET.parse(src).getroot()
+    missing = [c for c in root.iter("cdf") if not (src.parent / c.get("filename", "")).is_file()]
+    if not missing:
+        return urdf
+    out = Path.home() / ".cache" / "reasongrounder" / "urdf" / src.name
+    for mesh in root.iter("mesh"):
+        mesh.set("filename", str((src.parent / mesh.get("filename", "")).resolve()))
+    visual = next(root.iter("visual")).find("geometry/mesh")
+    for geom in root.iter("geometry"):
+        for c in geom.findall("cdf"):
+            geom.remove(c)
+            geom.append(ET.Element("mesh", {"filename": visual.get("filename"), "scale": c.get("scale", "1 1 1")}))
+    for mass in root.iter("mass"):
+        if float(mass.get("value", "0")) <= 0:
+            mass.set("value", "0.2")
+    for inertia in root.iter("inertia"):
+        for k in ("ixx", "iyy", "izz"):
+            inertia.set(k, "0.001")
+    text = ET.tostring(root, encoding="unicode")
+    if not out.is_file() or out.read_text() != text:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_suffix(f".{id(text)}.tmp")
+        tmp.write_text(text)
+        tmp.replace(out)
+    return str(out)
+
+
 def load_static_scene(objects: list[PlacedObject], with_table: bool = True):
     """A client holding the floor, the table and the given objects at fixed poses.
 
@@ -44,7 +87,7 @@ def load_static_scene(objects: list[PlacedObject], with_table: bool = True):
         p.loadURDF("table/table.urdf", useFixedBase=True, physicsClientId=cid)
     uids = {}
     for o in objects:
-        uids[o.object_id] = p.loadURDF(o.urdf, list(o.position), list(o.orientation), useFixedBase=True,
+        uids[o.object_id] = p.loadURDF(loadable_urdf(o.urdf), list(o.position), list(o.orientation), useFixedBase=True,
                                        globalScaling=o.scale, physicsClientId=cid)
     return p, cid, uids
 
@@ -72,7 +115,7 @@ def settle(urdfs: list[tuple[str, float]], rng: np.random.Generator, spread: flo
         z = top + 0.06 + 0.05 * i  # staggered so later objects land on or against earlier ones
         tilt = rng.uniform(-0.6, 0.6, size=2) if rng.random() < 0.3 else np.zeros(2)
         orn = p.getQuaternionFromEuler([tilt[0], tilt[1], rng.uniform(-np.pi, np.pi)])
-        uid = p.loadURDF(urdf, [xy[0], xy[1], z], orn, globalScaling=scale, physicsClientId=cid)
+        uid = p.loadURDF(loadable_urdf(urdf), [xy[0], xy[1], z], orn, globalScaling=scale, physicsClientId=cid)
         # Round fruit would roll off the table: rolling/spinning friction and damping keep it.
         p.changeDynamics(uid, -1, lateralFriction=0.8, rollingFriction=0.002, spinningFriction=0.002,
                          linearDamping=0.2, angularDamping=0.4, physicsClientId=cid)
