@@ -77,6 +77,24 @@ def test_combine_and_cache(text, tmp_path):
     assert torch.allclose(embed_cached(text, ["apple", "pear"], tmp_path, "t"), a, atol=1e-5)
 
 
+def test_cache_is_per_encoder(text, tmp_path):
+    """Embeddings on disk belong to the encoder that made them: another encoder (here a fixed
+    random projection of width 8) must compute its own, never get MiniLM's 384-d rows back."""
+    a = embed_cached(text, ["apple", "pear"], tmp_path, "t")
+
+    class Other:
+        dim = 8
+
+        def __call__(self, texts):
+            g = torch.Generator().manual_seed(0)
+            return torch.nn.functional.normalize(torch.randn(len(texts), 8, generator=g), dim=1)
+
+    b = embed_cached(Other(), ["apple", "pear"], tmp_path, "t")
+    assert b.shape == (2, 8) and a.shape == (2, 384)
+    assert len(list(tmp_path.glob("t_*.npy"))) == 2
+    assert torch.equal(embed_cached(Other(), ["apple", "pear"], tmp_path, "t"), b)
+
+
 def test_related_things_do_not_reject(reasoner):
     names = ["remote control", "rubber duck", "blue cup", "apple", "hammer", "stapler", "teddy bear"]
     for q, want in (("a remote to change the channel on the television", "remote control"),

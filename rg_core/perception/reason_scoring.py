@@ -42,18 +42,33 @@ def background_keep(name_emb_vocab: torch.Tensor, name_emb_bg: torch.Tensor, exc
     return (name_emb_bg @ name_emb_vocab.T).max(1).values < exclude
 
 
+def _inner(text_model):
+    """The encoder behind an embedding cache wrapper (reasoner._CachedText keeps it as .model)."""
+    return text_model.model if type(text_model).__name__ == "_CachedText" else text_model
+
+
+def model_identity(text_model) -> str:
+    """What a stored embedding depends on besides its text: the encoder's class, model folder name
+    and width (without it, embeddings of one encoder were served to another from the disk cache)."""
+    m = _inner(text_model)
+    folder = getattr(m, "folder", None) or getattr(m, "model_name", None) or ""
+    return f"{type(m).__name__}:{Path(str(folder)).name}:{getattr(m, 'dim', '')}"
+
+
 def embed_cached(text_model, texts: list[str], cache_dir: str | Path | None, tag: str) -> torch.Tensor:
     """Embeddings of a fixed text list (the background, ConSE's 1000 classes), kept on disk under
     cache_dir keyed by a hash of the texts: they depend only on the texts and the model, and
     embedding 2000 texts on 2 cores takes 10-20 s. A missing, unreadable or stale cache is rebuilt."""
     if not cache_dir:
         return text_model(texts)
-    key = hashlib.sha1(("\n".join(texts) + f"|{tag}").encode()).hexdigest()[:16]
+    ident = model_identity(text_model)
+    key = hashlib.sha1(("\n".join(texts) + f"|{tag}|{ident}").encode()).hexdigest()[:16]
     p = Path(cache_dir).expanduser() / f"{tag}_{key}.npy"
     if p.is_file():
         try:
             a = np.load(p, allow_pickle=False)
-            if a.shape[0] == len(texts) and a.dtype == np.float32:
+            dim = getattr(_inner(text_model), "dim", None)
+            if a.shape[0] == len(texts) and a.dtype == np.float32 and (dim is None or a.shape[-1] == dim):
                 return torch.from_numpy(a)
             log.warning("embedding cache %s has shape %s for %d texts: rebuilding", p, a.shape, len(texts))
         except (OSError, ValueError) as exc:
