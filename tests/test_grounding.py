@@ -127,3 +127,23 @@ def test_image_reasoner_is_shown_the_scene(oracle_field, synth_scene):
     # one keyframe: that keyframe alone
     one = Grounder(type("M", (), {"keyframes": kfs[:1]})(), None, RGConfig(), reasoner=rs, text_encoder=embed)
     assert one.scene_image().shape == (h, w, 3)
+
+
+def test_vote_border_is_measured_from_the_map(grounder):
+    """Synthetic renders: masks and depth agree, so the votes grow no mask (the results of every
+    synthetic figure stay as they were); the same map with every supervision mask shifted by
+    2 px, as a misregistered sensor would give, grows them by 2."""
+    import copy
+
+    assert grounder.gcfg.vote_border_px == -1 and grounder.vote_border() == 0
+    mapper = copy.copy(grounder.mapper)
+    sup = copy.deepcopy(grounder.mapper.supervision)
+    for ks in sup.by_keyframe.values():
+        ks.masks = np.roll(ks.masks, (2, 2), axis=(1, 2))
+    mapper.supervision = sup
+    g = Grounder(mapper, grounder.field, RGConfig())
+    assert g.vote_border() == 2
+    cfg = RGConfig()
+    cfg.ground.vote_border_px = 1
+    fixed = Grounder(mapper, grounder.field, cfg)
+    assert fixed.vote_border() == 1

@@ -148,6 +148,44 @@ def test_mask_votes_carve_what_views_see_elsewhere_and_keep_hidden_parts():
         mask_votes(pts, views, sizes=np.ones(2))
 
 
+def test_registration_border_measures_the_mask_to_depth_edge_offset():
+    """A box standing 0.3 m out of a floor: its mask where the depth says it is gives 0 px; the same
+    mask shifted by k px (colour and depth misregistered, as on a real RGB-D sensor) gives k px;
+    a mask on a flat floor (a printed label) measures nothing."""
+    from rg_core.grounding.carve import depth_edges, mask_depth_offsets, registration_border
+
+    depth = np.full((80, 100), 1.0)
+    depth[20:60, 30:70] = 0.7
+    box = np.zeros_like(depth, bool)
+    box[20:60, 30:70] = True
+    assert depth_edges(depth).sum() > 0
+    assert registration_border(mask_depth_offsets(depth, [box])) == 0
+    for k in (1, 2, 3):
+        shifted = np.roll(box, (k, k), axis=(0, 1))
+        assert registration_border(mask_depth_offsets(depth, [shifted])) == k
+    assert registration_border(mask_depth_offsets(depth, [np.roll(box, (4, 4), axis=(0, 1))]), max_px=3) == 3
+    # a shift along one axis leaves the sides along it on their edges: half the boundary is on
+    # the edge, which reads as registered
+    assert registration_border(mask_depth_offsets(depth, [np.roll(box, (-2, 0), axis=(0, 1))])) == 0
+    # registered: half the boundary on the edge, the rest 2-4 px off (an object on the table)
+    assert registration_border(np.r_[np.zeros(60), np.full(60, 3.0)]) == 0
+    # misregistered: few on the edge
+    assert registration_border(np.r_[np.zeros(10), np.full(90, 2.2)]) == 2
+    label = np.zeros_like(box)
+    label[65:75, 10:25] = True
+    assert len(mask_depth_offsets(depth, [label])) == 0 and registration_border(np.zeros(0)) == 0
+    # unknown depth (0, NaN) makes no edges; too few measured pixels: no growth
+    holes = depth.copy()
+    holes[:, 50:] = np.nan
+    holes[:5] = 0
+    assert np.isfinite(mask_depth_offsets(holes, [box])).all()
+    assert registration_border(np.ones(10), min_pixels=50) == 0
+    with pytest.raises(ValueError, match="differ"):
+        mask_depth_offsets(depth, [box[:10]])
+    with pytest.raises(ValueError, match=r"\[h, w\]"):
+        depth_edges(np.ones(5))
+
+
 def test_connected_to_keeps_the_anchor_piece():
     from rg_core.grounding.boxes import connected_to, map_spacing
 

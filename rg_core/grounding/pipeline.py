@@ -17,7 +17,7 @@ from ..geometry.conventions import backproject, pixels_to_points
 from ..render import rasterize
 from .boxes import connected_to, group_boxes, map_spacing, robust_inliers
 from .cache import MapCache
-from .carve import MaskView, mask_votes
+from .carve import MaskView, mask_depth_offsets, mask_votes, registration_border
 from .grouping import Groups, cluster_instances
 from .relevancy import CANONICAL, relevancy, relevancy_pca
 from .result import GroundedObject, GroundingResult
@@ -276,6 +276,31 @@ class Grounder:
         return self.cache.get("spacing", self.gcfg.seed,
                               lambda: map_spacing(self.mapper.gaussians.means.detach().numpy(), seed=self.gcfg.seed))
 
+    def vote_border(self) -> int:
+        """Mask growth (px) for the votes: ground.vote_border_px, or with -1 the colour/depth
+        registration offset measured on up to 6 keyframes spread over the map (their supervision
+        masks against their depth), cached until the map changes."""
+        if self.gcfg.vote_border_px >= 0:
+            return int(self.gcfg.vote_border_px)
+        self._check_cache()
+
+        def make() -> int:
+            sup = self.mapper.supervision
+            kfs = [kf for kf in self.mapper.keyframes if sup is not None and kf.index in sup.by_keyframe]
+            if not kfs:
+                return 0
+            pick = [kfs[int(i)] for i in np.unique(np.linspace(0, len(kfs) - 1, min(6, len(kfs))).round())]
+            offs = []
+            for kf in pick:
+                depth = kf.depth.numpy()
+                masks = [m for m in sup.by_keyframe[kf.index].masks
+                         if m.shape == depth.shape and 50 <= int(m.sum()) <= 0.5 * m.size]
+                if masks:
+                    offs.append(mask_depth_offsets(depth, masks))
+            return registration_border(np.concatenate(offs) if offs else np.zeros(0))
+
+        return self.cache.get("border", self.gcfg.seed, make)
+
     def render_keyframe(self, kf):
         """The field rendered from a keyframe (latent, colour, depth, alpha), cached per keyframe."""
         self._check_cache()
@@ -406,7 +431,8 @@ class Grounder:
             # Votes only where they can matter: the groups and what lies within 4 s* of the peak.
             near = np.nonzero(np.linalg.norm(means - anchor, axis=1) <= 4 * scale)[0] if z > 0 else np.zeros(0, np.int64)
             cand = np.unique(np.concatenate([ids for ids, _ in found[:max_results]] + [near]).astype(np.int64))
-            v = mask_votes(means[cand], views, g.scales.detach()[torch.from_numpy(cand)].max(1).values.numpy())
+            v = mask_votes(means[cand], views, g.scales.detach()[torch.from_numpy(cand)].max(1).values.numpy(),
+                           border_px=self.vote_border())
             carved, voted = np.zeros(len(means), bool), np.zeros(len(means), bool)
             carved[cand], voted[cand] = v.carved(self.gcfg.min_mask_votes), v.voted(self.gcfg.min_mask_votes)
         for n, (ids, s_g) in enumerate(found[:max_results]):
@@ -421,7 +447,7 @@ class Grounder:
                 if n == 0 and ref_view is not None:
                     # The piece the reference mask sees most, not only the one under its peak pixel.
                     support = mask_votes(means[ids], [ref_view], g.scales.detach()[torch.from_numpy(ids)]
-                                         .max(1).values.numpy()).inside > 0
+                                         .max(1).values.numpy(), border_px=self.vote_border()).inside > 0
                 ids = ids[connected_to(means[ids], anchor if n == 0 and z > 0 else None, link, support)]
             ids = ids[robust_inliers(means[ids], self.gcfg.outlier_mads)]
             if not len(ids):
