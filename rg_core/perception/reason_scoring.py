@@ -42,7 +42,7 @@ def background_keep(name_emb_vocab: torch.Tensor, name_emb_bg: torch.Tensor, exc
     return (name_emb_bg @ name_emb_vocab.T).max(1).values < exclude
 
 
-def _inner(text_model):
+def inner_encoder(text_model):
     """The encoder behind an embedding cache wrapper (reasoner._CachedText keeps it as .model)."""
     return text_model.model if type(text_model).__name__ == "_CachedText" else text_model
 
@@ -50,7 +50,7 @@ def _inner(text_model):
 def model_identity(text_model) -> str:
     """What a stored embedding depends on besides its text: the encoder's class, model folder name
     and width (without it, embeddings of one encoder were served to another from the disk cache)."""
-    m = _inner(text_model)
+    m = inner_encoder(text_model)
     folder = getattr(m, "folder", None) or getattr(m, "model_name", None) or ""
     return f"{type(m).__name__}:{Path(str(folder)).name}:{getattr(m, 'dim', '')}"
 
@@ -67,7 +67,7 @@ def embed_cached(text_model, texts: list[str], cache_dir: str | Path | None, tag
     if p.is_file():
         try:
             a = np.load(p, allow_pickle=False)
-            dim = getattr(_inner(text_model), "dim", None)
+            dim = getattr(inner_encoder(text_model), "dim", None)
             if a.shape[0] == len(texts) and a.dtype == np.float32 and (dim is None or a.shape[-1] == dim):
                 return torch.from_numpy(a)
             log.warning("embedding cache %s has shape %s for %d texts: rebuilding", p, a.shape, len(texts))

@@ -273,6 +273,13 @@ class TextReasoner(Reasoner):
             except ValueError as exc:  # the reasoner still answers, without the open-set prior
                 self.prior_error = str(exc)
                 log.warning("text reasoner without open-set prior: %s", exc)
+        from .reason_scoring import inner_encoder
+        dim = getattr(inner_encoder(self.text), "dim", None)
+        if self.prior is not None and dim is not None and len(self.prior.coef) != dim:
+            self.prior_error = (f"open-set prior {domain_prior_path or DOMAIN_PRIOR_PATH} is {len(self.prior.coef)}-d, "
+                                f"the text model {dim}-d: fit one for this encoder (bench_reasoning.py --fit --text-model)")
+            log.warning("text reasoner without open-set prior: %s", self.prior_error)
+            self.prior = None
         self._bg_on = absent_margin is not None and absent_margin >= 0
         self._bg = None
 
@@ -460,6 +467,16 @@ def reasoner_from_config(cfg) -> Reasoner:
                 name_weight=cfg.name_weight, background_exclude=cfg.background_exclude,
                 use_knowledge=cfg.use_knowledge, knowledge_path=cfg.knowledge_path, domain_prior=cfg.domain_prior,
                 prior_trust=cfg.prior_trust, cache_dir=cfg.cache_dir)
+    if cfg.text_model not in ("", "minilm"):
+        from .sentence_text import encoder_fit, make_text_model
+
+        text["text_model"] = _CachedText(make_text_model(cfg.text_model, cfg.cache_dir))
+        fit, prior = encoder_fit(cfg.text_model)
+        text.update(fit)
+        if prior is None:
+            text["domain_prior"] = False   # the packaged prior is MiniLM's
+        else:
+            text["domain_prior_path"] = str(prior)
     if cfg.backend == "text" and cfg.llm_scorer and cfg.llm_weight:
         text.update(llm_scorer_from_config(cfg), llm_weight=cfg.llm_weight)
     if cfg.backend == "text":
