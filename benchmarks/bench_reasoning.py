@@ -148,18 +148,16 @@ def main(argv=None) -> int:
     if a.subsample > 1:
         sp.tune, sp.held = sp.tune[::a.subsample], sp.held[::a.subsample]
     t = time.perf_counter()
-    from rg_core.perception.sentence_text import DATA, FIT_KEYS, encoder_fit, make_text_model
+    from rg_core.perception.sentence_text import DATA, FIT_KEYS, encoder_fit, fit_paths, is_named, make_text_model
 
     model = make_text_model(a.text_model) or MiniLMText()
     load_model = time.perf_counter() - t
     other = a.text_model not in ("", "minilm")
-    named = other and "/" not in a.text_model
-    fit_file = (DATA if named else out) / f"reasoner_fit_{a.text_model if named else 'folder'}.json"
+    fit_file, prior_file = (fit_paths(a.text_model, DATA) if is_named(a.text_model) else fit_paths("folder", out))
     if other:   # the package's prior belongs to MiniLM: this encoder's own, or none before a fit
         import rg_core.perception.reasoner as reasoner_module
 
-        reasoner_module.DOMAIN_PRIOR_PATH = (DATA if named else out) / (
-            f"domain_prior_{a.text_model}.json" if named else "domain_prior_folder.json")
+        reasoner_module.DOMAIN_PRIOR_PATH = prior_file
     # Separate caches: neither reasoner sees the other's query embeddings (honest warm latency).
     t = time.perf_counter()
     old = TextReasoner(use_knowledge=False, name_weight=1.0, min_similarity=0.30, absent_margin=0.15,

@@ -11,7 +11,7 @@ thin object's mask grown by a pixel takes in the table beside it. A real RGB-D s
 depth images are registered to a pixel or two at best, so there a mask's edge and the depth edge of
 its object are apart and the object's side faces and rims fall "outside" its mask: the votes then
 grow each mask by the offset measured between the two (`registration_border`): on YCB-Video 0002 at
-the map's 320 px, about 1 px; on the synthetic scenes, 0.
+the map's 320 px, 2 px; on the synthetic scenes, 0.
 """
 from __future__ import annotations
 

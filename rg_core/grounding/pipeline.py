@@ -42,6 +42,13 @@ class _threads:
             torch.set_num_threads(self.old)
 
 
+def _spread(items: list, n: int) -> list:
+    """Up to n items spread evenly from the first to the last, in order."""
+    if not items:
+        return []
+    return [items[i] for i in sorted({round(float(i)) for i in np.linspace(0, len(items) - 1, min(n, len(items)))})]
+
+
 class Grounder:
     """ground(query) -> GroundingResult; masks(result, camera) -> amodal and visible masks.
 
@@ -120,7 +127,7 @@ class Grounder:
         kfs = self.mapper.keyframes
         if not kfs:
             raise ValueError("scene_image: the map has no keyframes")
-        pick = [kfs[i] for i in sorted({round(i) for i in np.linspace(0, len(kfs) - 1, min(max_views, len(kfs)))})]
+        pick = _spread(kfs, max_views)
         h, w = pick[0].rgb.shape[:2]
         tiles = []
         for kf in pick:
@@ -289,7 +296,7 @@ class Grounder:
             kfs = [kf for kf in self.mapper.keyframes if sup is not None and kf.index in sup.by_keyframe]
             if not kfs:
                 return 0
-            pick = [kfs[int(i)] for i in np.unique(np.linspace(0, len(kfs) - 1, min(6, len(kfs))).round())]
+            pick = _spread(kfs, 6)
             offs = []
             for kf in pick:
                 depth = kf.depth.numpy()
@@ -427,12 +434,13 @@ class Grounder:
             ref_view = MaskView(np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64),
                                 kf.depth.numpy(), ref_mask.numpy())
         carved = voted = None
+        border = self.vote_border() if views or ref_view is not None else 0
         if views:
             # Votes only where they can matter: the groups and what lies within 4 s* of the peak.
             near = np.nonzero(np.linalg.norm(means - anchor, axis=1) <= 4 * scale)[0] if z > 0 else np.zeros(0, np.int64)
             cand = np.unique(np.concatenate([ids for ids, _ in found[:max_results]] + [near]).astype(np.int64))
             v = mask_votes(means[cand], views, g.scales.detach()[torch.from_numpy(cand)].max(1).values.numpy(),
-                           border_px=self.vote_border())
+                           border_px=border)
             carved, voted = np.zeros(len(means), bool), np.zeros(len(means), bool)
             carved[cand], voted[cand] = v.carved(self.gcfg.min_mask_votes), v.voted(self.gcfg.min_mask_votes)
         for n, (ids, s_g) in enumerate(found[:max_results]):
@@ -447,7 +455,7 @@ class Grounder:
                 if n == 0 and ref_view is not None:
                     # The piece the reference mask sees most, not only the one under its peak pixel.
                     support = mask_votes(means[ids], [ref_view], g.scales.detach()[torch.from_numpy(ids)]
-                                         .max(1).values.numpy(), border_px=self.vote_border()).inside > 0
+                                         .max(1).values.numpy(), border_px=border).inside > 0
                 ids = ids[connected_to(means[ids], anchor if n == 0 and z > 0 else None, link, support)]
             ids = ids[robust_inliers(means[ids], self.gcfg.outlier_mads)]
             if not len(ids):

@@ -44,7 +44,9 @@ def background_keep(name_emb_vocab: torch.Tensor, name_emb_bg: torch.Tensor, exc
 
 def inner_encoder(text_model):
     """The encoder behind an embedding cache wrapper (reasoner._CachedText keeps it as .model)."""
-    return text_model.model if type(text_model).__name__ == "_CachedText" else text_model
+    from .reasoner import _CachedText   # reasoner imports this module: import at call time
+
+    return text_model.model if isinstance(text_model, _CachedText) else text_model
 
 
 def model_identity(text_model) -> str:

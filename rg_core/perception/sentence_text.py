@@ -138,13 +138,23 @@ def make_text_model(name: str, cache_dir: str | Path = "~/.cache/reasongrounder"
 FIT_KEYS = ("name_weight", "min_similarity", "absent_margin", "background_exclude", "prior_trust")
 
 
+def is_named(name: str) -> bool:
+    """A named encoder other than MiniLM ("mpnet"), as opposed to the default or a folder path."""
+    return name not in ("", "minilm") and "/" not in name and "\\" not in name
+
+
+def fit_paths(name: str, folder: Path = DATA) -> tuple[Path, Path]:
+    """(thresholds file, open-set prior file) of an encoder's tune-half fit in `folder`."""
+    return folder / f"reasoner_fit_{name}.json", folder / f"domain_prior_{name}.json"
+
+
 def encoder_fit(name: str) -> tuple[dict, Path | None]:
     """The reasoner's values fit for a named encoder on the tune half (bench_reasoning.py --fit
     --text-model NAME writes them): ({key: value} of FIT_KEYS, its open-set prior file or None).
     ({}, None) for an encoder without a stored fit (a user's folder: config values, no prior)."""
-    if name in ("", "minilm") or "/" in name or "\\" in name:
+    if not is_named(name):
         return {}, None
-    fit, prior = DATA / f"reasoner_fit_{name}.json", DATA / f"domain_prior_{name}.json"
+    fit, prior = fit_paths(name)
     if not fit.is_file():
         return {}, None
     import json

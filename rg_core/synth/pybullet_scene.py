@@ -5,6 +5,7 @@ plain description (URDF path, scale, pose) and render their share of the views.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,6 +34,7 @@ def _connect():
     return p, cid
 
 
+@functools.lru_cache(maxsize=None)
 def loadable_urdf(urdf: str) -> str:
     """The URDF to hand pybullet for `urdf` (a pybullet_data-relative or absolute path).
 
