@@ -38,8 +38,13 @@ setup(
     package_data={"rg_core": ["perception/data/*.json"]},
     install_requires=_requirements("requirements.txt"),
     extras_require={"test": _requirements("requirements-test.txt")},
+    # The layout `ros2 run` / `ros2 launch` expect under an AMENT_PREFIX_PATH prefix: the ament index
+    # marker, share/rg_ros/{package.xml,launch,config}, and executables in lib/rg_ros/ (wrappers that
+    # exec the console scripts in bin/). An editable install skips data_files: scripts/bootstrap.sh
+    # installs them with `setup.py install_data`.
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"lib/{PACKAGE}", [str(p) for p in sorted(Path("resource/libexec").iterdir())]),
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", [str(p) for p in sorted(Path("config").glob("*.yaml"))]
          + [str(p) for p in sorted(Path("config").glob("*.rviz"))]),
@@ -51,8 +56,8 @@ setup(
         "rg_core.render._rasterize_cpu", ["rg_core/render/csrc/rasterize_cpu.cpp", "rg_core/render/csrc/project_cpu.cpp"],
         language="c++", extra_compile_args=["-std=c++17", "-O3", "-fopenmp", "-fno-math-errno", *_simd_flags()],
         extra_link_args=["-fopenmp"])],
-    # rg-node / rg-ground / rg-replay: the node, a Ground service call and a scene replayed like a bag,
-    # from a pip install (no ros2cli there); launch/grounding.launch.py runs rg-node under a full ROS 2.
+    # rg-node / rg-ground / rg-replay: the node, a Ground service call and a scene or bag replayed;
+    # `ros2 run rg_ros rg-node` and launch/grounding.launch.py run the same scripts through lib/rg_ros/.
     entry_points={"console_scripts": ["rg = rg_core.cli:main", "rg-node = rg_ros.tools:node_main",
                                       "rg-ground = rg_ros.tools:ground_main", "rg-replay = rg_ros.tools:replay_main"]},
     zip_safe=False,

@@ -1,9 +1,11 @@
-"""ROS 2 launch file (needs a full ROS 2 install: launch, launch_ros, rviz2; not available as wheels).
+"""rg_node (mapping + grounding) and RViz.
 
-    ros2 launch rg_ros grounding.launch.py [params_file:=...] [rviz:=false] [rviz_config:=...]
+    ros2 launch rg_ros grounding.launch.py [camera:=/camera] [params_file:=...] [rviz:=false]
 
-Starts rg-node with the parameters of config/grounding.yaml and RViz with config/grounding.rviz.
-From a pip install the same is `rg-node --params config/grounding.yaml` (and rviz2 by hand).
+rg_node subscribes to relative names (rgb/image, depth/image, rgb/camera_info, pose, odom) and
+serves `ground`; this file remaps the inputs to a camera driver's topics under `camera`
+(realsense2_camera 4.x: camera:=/camera/camera) or to single topics (color_topic:=...), and the
+service becomes /ground. Parameters: config/grounding.yaml (params_file:=...).
 """
 import os
 
@@ -14,19 +16,35 @@ from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
+# node input -> (launch argument, default under `camera`); rg_ros.node.INPUTS holds the same defaults
+REMAPS = {
+    "rgb/image": ("color_topic", "/color/image_raw"),
+    "depth/image": ("depth_topic", "/aligned_depth_to_color/image_raw"),
+    "rgb/camera_info": ("camera_info_topic", "/color/camera_info"),
+    "pose": ("pose_topic", "/pose"),
+}
+
 
 def generate_launch_description():
     share = get_package_share_directory("rg_ros")
-    params = LaunchConfiguration("params_file")
-    rviz_config = LaunchConfiguration("rviz_config")
-    return LaunchDescription([
+    camera = LaunchConfiguration("camera")
+    args = [
+        DeclareLaunchArgument("camera", default_value="/camera", description="namespace of the RGB-D driver"),
         DeclareLaunchArgument("params_file", default_value=os.path.join(share, "config", "grounding.yaml"),
                               description="ros__parameters YAML of rg_node"),
         DeclareLaunchArgument("rviz_config", default_value=os.path.join(share, "config", "grounding.rviz"),
                               description="RViz configuration"),
         DeclareLaunchArgument("rviz", default_value="true", description="start RViz"),
+        DeclareLaunchArgument("odom_topic", default_value="/odom", description="nav_msgs/Odometry (pose_source odometry)"),
+    ]
+    args += [DeclareLaunchArgument(arg, default_value=[camera, suffix], description=f"remapped to rg_node's {name}")
+             for name, (arg, suffix) in REMAPS.items()]
+    remappings = [(name, LaunchConfiguration(arg)) for name, (arg, _) in REMAPS.items()]
+    remappings.append(("odom", LaunchConfiguration("odom_topic")))
+    return LaunchDescription(args + [
+        # sigterm_timeout: the node saves the map on shutdown when save_on_shutdown is set
         Node(package="rg_ros", executable="rg-node", name="rg_node", output="screen", emulate_tty=True,
-             parameters=[params]),
+             parameters=[LaunchConfiguration("params_file")], remappings=remappings, sigterm_timeout="30"),
         Node(package="rviz2", executable="rviz2", name="rviz2", output="screen",
-             arguments=["-d", rviz_config], condition=IfCondition(LaunchConfiguration("rviz"))),
+             arguments=["-d", LaunchConfiguration("rviz_config")], condition=IfCondition(LaunchConfiguration("rviz"))),
     ])

@@ -15,7 +15,7 @@ import sys
 import time
 from pathlib import Path
 
-from .publish_util import flush_publishers, wait_for_subscribers
+from .publish_util import replay_qos, flush_publishers, report_unmatched, wait_for_subscribers
 
 
 def message_class(msgtype: str):
@@ -51,7 +51,6 @@ def replay_bag(args, ros_argv: list[str]) -> int:
         print(f"rg-replay: {exc}", file=sys.stderr)
         return 2
     import rclpy
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
     try:
         conns = [c for c in reader.connections if args.topics is None or c.topic in args.topics]
@@ -69,12 +68,11 @@ def replay_bag(args, ros_argv: list[str]) -> int:
         pubs = {}
         for c in conns:
             latched = c.topic.rstrip("/").endswith("tf_static")
-            qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
-            pubs[c.topic] = node.create_publisher(classes[c.topic], c.topic, qos)
+            pubs[c.topic] = node.create_publisher(classes[c.topic], c.topic, replay_qos(latched))
         log = node.get_logger()
         sent = passes = 0
-        wait_for_subscribers(list(pubs.values()), args.wait)
+        report_unmatched(log, wait_for_subscribers(list(pubs.values()), args.wait, minimum=args.min_subscribers),
+                         args.wait, args.min_subscribers)
         duration_ns = max(reader.duration, 1)
         try:
             while True:

@@ -7,20 +7,23 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import signal
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
@@ -35,101 +38,102 @@ from .sync import ApproximateTimeSync, SyncedSet
 from .worker import Frame, MapWorker, WorkerConfig
 
 NODE_NAME = "rg_node"
+# qos_overrides./<topic>.<publisher|subscription>.{history,depth,reliability} parameters for every topic
+_QOS_OVERRIDES = QoSOverridingOptions.with_default_policies()
+
+
+def _p(default, doc: str, lo: float | None = None, hi: float | None = None, choices: tuple[str, ...] = ()):
+    """A node parameter: default (its type is the parameter's type), description, inclusive range or choices."""
+    return field(default=default, metadata={"doc": doc, "range": None if lo is None else (lo, hi),
+                                            "choices": choices})
+
+
+# Relative names the node subscribes and serves (set by remapping, as image_pipeline's nodes do) and
+# the camera topics the launch file remaps them to by default (a realsense2_camera-style driver in
+# namespace /camera). rg-replay publishes on these defaults.
+INPUTS = {"rgb/image": "/camera/color/image_raw", "depth/image": "/camera/aligned_depth_to_color/image_raw",
+          "rgb/camera_info": "/camera/color/camera_info", "pose": "/camera/pose", "odom": "/odom"}
+GROUND_SERVICE = "ground"
+DIAGNOSTICS_TOPIC = "/diagnostics"   # diagnostic_updater's absolute name (remappable like any other)
+TRANSPORTS = {"color_transport": ("raw", "compressed"), "depth_transport": ("raw", "compressedDepth")}
 
 
 @dataclass
 class NodeParams:
-    """The node's ROS parameters (name, default; the type follows the default)."""
+    """The node's ROS parameters, the one place they are declared from: name, default (the type
+    follows it), description and range (shown by `ros2 param describe`). All are read once at
+    start-up, so all are read-only."""
 
-    color_topic: str = "/camera/color/image_raw"
-    """sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8, mono8); a name ending /compressed subscribes to
-    sensor_msgs/CompressedImage (jpeg/png), as image_transport names it."""
-    depth_topic: str = "/camera/aligned_depth_to_color/image_raw"
-    """sensor_msgs/Image, 16UC1 (mm) or 32FC1 (m), registered to the colour image; a name ending
-    /compressedDepth subscribes to image_transport's compressedDepth CompressedImage."""
-    camera_info_topic: str = "/camera/color/camera_info"
-    """sensor_msgs/CameraInfo of the colour camera."""
-    pose_source: str = "tf"
-    """tf: look up map_frame <- the colour image's header.frame_id on /tf + /tf_static at its stamp;
-    topic: geometry_msgs/PoseStamped on pose_topic; odometry: nav_msgs/Odometry on odom_topic
-    (chained with TF to the image's frame, and to map_frame when the odometry's frame differs)."""
-    pose_topic: str = "/camera/pose"
-    """geometry_msgs/PoseStamped of the colour optical frame in map_frame (pose_source topic)."""
-    odom_topic: str = "/odom"
-    """nav_msgs/Odometry (pose_source odometry)."""
-    map_frame: str = "map"
-    """Frame of poses, clouds and markers."""
-    tf_wait: float = 0.5
-    """Seconds a frame waits for its transform; then it is dropped and counted (diagnostics 'tf')."""
-    tf_cache_time: float = 10.0
-    """Seconds of dynamic TF history kept."""
-    tf_max_gap: float = 0.5
-    """A dynamic TF link is not interpolated across a longer gap between samples (s); 0 = any gap (tf2)."""
-    tf_extrapolation: float = 0.0
-    """Seconds past a link's newest (or before its oldest) sample where its nearest sample is used (tf2: 0)."""
-    ground_service: str = "/ground"
-    """Name of the rg_interfaces/Ground service."""
-    sync_queue_size: int = 10
-    """Messages per topic kept by the approximate time synchroniser."""
-    sync_slop: float = 0.05
-    """Largest stamp spread (s) of one synchronised set."""
-    frame_queue_size: int = 4
-    """Frames waiting for the mapper; the oldest is dropped (and counted) when full."""
-    rg_config: str = ""
-    """rg YAML configuration (map and field sections); empty = defaults."""
-    map_width: int = 0
-    """Mapper working width override (0 = rg_config's map.width)."""
-    iters_per_keyframe: int = 0
-    """Optimisation iterations per keyframe override (0 = rg_config's)."""
-    max_gaussians: int = 0
-    """Memory bound override (0 = rg_config's)."""
-    load_map: str = ""
-    """Map file loaded at start-up (empty = start with an empty map)."""
-    save_path: str = "rg_map.pt"
-    """Where ~/save_map (and a save on shutdown) writes the map."""
-    save_on_shutdown: bool = False
-    """Save the map to save_path when the node shuts down (SIGINT)."""
-    features: bool = True
-    """Keyframe supervision and feature-field training when the mapper is idle."""
-    mask_generator: str = "rgbd"
-    """Mask generator backend of the supervision."""
-    embedder: str = "conse"
-    """Image-text embedder backend of the supervision."""
-    preset: str = ""
-    """Named models (rg_core/models): offline, paper, paper_cpu; overrides mask_generator, embedder and the
-    reasoner ("" = those parameters). Missing models are logged with the `rg models ...` command to run."""
-    train_slice: float = 0.5
-    """Seconds of field training per idle slice."""
-    train_seconds_max: float = 30.0
-    """Field training seconds after each supervision change (0 = whenever idle)."""
-    refine_iters: int = 0
-    """Map refinement iterations per idle slice (0 = off)."""
-    torch_threads: int = 0
-    """torch intra-op threads (0 = torch's default)."""
-    max_results: int = 1
-    """Objects returned when a request says max_results = 0."""
-    max_query_chars: int = 1000
-    """Longer queries are refused."""
-    ground_timeout: float = 30.0
-    """Seconds a grounding call waits for the map lock."""
-    mask_rate: float = 2.0
-    """Hz of ~/amodal_mask and ~/visible_mask for the last grounded targets (0 = off)."""
-    map_cloud_period: float = 5.0
-    """Seconds between ~/map_cloud messages (0 = off); only sent while someone subscribes."""
-    map_cloud_max_points: int = 50000
-    """Gaussians per ~/map_cloud message (evenly subsampled)."""
-    status_period: float = 1.0
-    """Seconds between diagnostics messages."""
-    diagnostics_topic: str = "/diagnostics"
-    """diagnostic_msgs/DiagnosticArray status topic."""
-    camera_info_timeout: float = 5.0
-    """Warn when images arrive but no CameraInfo came for this long (s)."""
-    marker_alpha: float = 0.25
-    """Opacity of the grounded boxes (CUBE markers)."""
+    color_transport: str = _p("raw", "image_transport of rgb/image: raw (sensor_msgs/Image rgb8, bgr8, rgba8, "
+                              "bgra8, mono8) or compressed (CompressedImage jpeg/png on rgb/image/compressed)",
+                              choices=TRANSPORTS["color_transport"])
+    depth_transport: str = _p("raw", "image_transport of depth/image (registered to the colour image): raw "
+                              "(16UC1 mm or 32FC1 m) or compressedDepth (on depth/image/compressedDepth)",
+                              choices=TRANSPORTS["depth_transport"])
+    pose_source: str = _p("tf", "tf: look up map_frame <- the colour image's header.frame_id on /tf and "
+                          "/tf_static at its stamp; topic: geometry_msgs/PoseStamped on 'pose'; odometry: "
+                          "nav_msgs/Odometry on 'odom', chained with TF to the image's frame",
+                          choices=("tf", "topic", "odometry"))
+    map_frame: str = _p("map", "frame of poses, clouds and markers")
+    tf_wait: float = _p(0.5, "seconds a frame waits for its transform; then it is dropped and counted "
+                        "(diagnostics 'tf')", 0.0, 60.0)
+    tf_cache_time: float = _p(10.0, "seconds of dynamic TF history kept", 0.1, 3600.0)
+    tf_max_gap: float = _p(0.5, "a dynamic TF link is not interpolated across a longer gap between samples "
+                           "(s); 0 = any gap, as tf2", 0.0, 3600.0)
+    tf_extrapolation: float = _p(0.0, "seconds past a link's newest (or before its oldest) sample where its "
+                                 "nearest sample is used (tf2: 0)", 0.0, 60.0)
+    sync_queue_size: int = _p(10, "messages per input kept by the approximate time synchroniser", 1, 1000)
+    sync_slop: float = _p(0.05, "largest stamp spread (s) of one synchronised colour/depth/info set", 0.0, 10.0)
+    frame_queue_size: int = _p(4, "frames waiting for the mapper; when full the oldest is dropped and counted",
+                               1, 100000)
+    rg_config: str = _p("", "rg YAML configuration (map and field sections); empty = defaults")
+    map_width: int = _p(0, "mapper working width in pixels (0 = rg_config's map.width)", 0, 8192)
+    iters_per_keyframe: int = _p(0, "optimisation iterations per keyframe (0 = rg_config's)", 0, 100000)
+    max_gaussians: int = _p(0, "bound on the map's Gaussians (0 = rg_config's)", 0, 1_000_000_000)
+    load_map: str = _p("", "map file loaded at start-up (empty = start with an empty map)")
+    save_path: str = _p("rg_map.pt", "where ~/save_map (and the save on shutdown) writes the map")
+    save_on_shutdown: bool = _p(False, "save the map to save_path when the node stops (SIGINT, SIGTERM)")
+    features: bool = _p(True, "keyframe supervision and feature-field training while the mapper is idle")
+    mask_generator: str = _p("rgbd", "mask generator backend of the supervision")
+    embedder: str = _p("conse", "image-text embedder backend of the supervision")
+    preset: str = _p("", "named models (rg models): offline, paper, paper_cpu; overrides mask_generator, "
+                     "embedder and the reasoner (empty = those parameters)")
+    train_slice: float = _p(0.5, "seconds of field training per idle slice", 0.01, 600.0)
+    train_seconds_max: float = _p(30.0, "field training seconds after each supervision change (0 = whenever "
+                                  "idle)", 0.0, 1e6)
+    refine_iters: int = _p(0, "map refinement iterations per idle slice (0 = off)", 0, 100000)
+    torch_threads: int = _p(0, "torch intra-op threads (0 = torch's default)", 0, 1024)
+    max_results: int = _p(1, "objects returned when a request says max_results = 0", 1, 1000)
+    max_query_chars: int = _p(1000, "longer queries are refused", 1, 1_000_000)
+    ground_timeout: float = _p(30.0, "seconds a grounding call waits for the map lock", 0.1, 3600.0)
+    mask_rate: float = _p(2.0, "Hz of ~/amodal_mask and ~/visible_mask for the last grounded targets (0 = off)",
+                          0.0, 100.0)
+    map_cloud_period: float = _p(5.0, "seconds between ~/map_cloud messages, sent only while someone "
+                                 "subscribes (0 = off)", 0.0, 3600.0)
+    map_cloud_max_points: int = _p(50000, "Gaussians per ~/map_cloud message (evenly subsampled)", 1, 100_000_000)
+    status_period: float = _p(1.0, "seconds between /diagnostics messages", 0.05, 3600.0)
+    camera_info_timeout: float = _p(5.0, "warn when images arrive but no CameraInfo came for this long (s)",
+                                    0.0, 3600.0)
+    marker_alpha: float = _p(0.25, "opacity of the grounded boxes (CUBE markers)", 0.0, 1.0)
 
 
-PARAM_NAMES = tuple(f.name for f in dataclasses.fields(NodeParams))
-POSE_SOURCES = ("tf", "topic", "odometry")
+PARAM_FIELDS = {f.name: f for f in dataclasses.fields(NodeParams)}
+PARAM_NAMES = tuple(PARAM_FIELDS)
+POSE_SOURCES = PARAM_FIELDS["pose_source"].metadata["choices"]
+
+
+def descriptor(name: str) -> ParameterDescriptor:
+    """The ParameterDescriptor of a NodeParams field (description, range or choices, read-only)."""
+    f = PARAM_FIELDS[name]
+    d = ParameterDescriptor(name=name, description=f.metadata["doc"], read_only=True)
+    rng, choices = f.metadata["range"], f.metadata["choices"]
+    if rng is not None and isinstance(f.default, float):
+        d.floating_point_range = [FloatingPointRange(from_value=float(rng[0]), to_value=float(rng[1]), step=0.0)]
+    elif rng is not None:
+        d.integer_range = [IntegerRange(from_value=int(rng[0]), to_value=int(rng[1]), step=1)]
+    if choices:
+        d.additional_constraints = "one of: " + ", ".join(choices)
+    return d
 
 
 def _final(exc: TFError) -> bool:
@@ -140,74 +144,13 @@ def _final(exc: TFError) -> bool:
     return isinstance(exc, LoopError) or "falls in a gap" in msg or "extrapolation into the past" in msg
 
 
-def coerce_params(values: dict, where: str = "parameters") -> dict:
-    """Check names and types against NodeParams (ints accepted for floats); raise ValueError naming the key."""
-    defaults = NodeParams()
-    out = {}
-    for k, v in values.items():
-        if k not in PARAM_NAMES:
-            raise ValueError(f"{where}: unknown parameter '{k}' (known: {', '.join(PARAM_NAMES)})")
-        d = getattr(defaults, k)
-        if isinstance(d, bool):
-            ok = isinstance(v, bool)
-        elif isinstance(d, int):
-            ok = isinstance(v, int) and not isinstance(v, bool)
-        elif isinstance(d, float):
-            ok = isinstance(v, (int, float)) and not isinstance(v, bool)
-            v = float(v) if ok else v
-        else:
-            ok = isinstance(v, str)
-        if not ok:
-            raise ValueError(f"{where}: parameter '{k}' must be {type(d).__name__}, got {v!r}")
-        out[k] = v
-    return out
-
-
-def read_params_file(path: str | Path, node_name: str = NODE_NAME) -> dict:
-    """A ros__parameters YAML -> {name: value} for `node_name` (sections '/**', 'name' and '/name',
-    merged in that order). Unknown names and wrong types are errors."""
-    import yaml
-
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"{path}: parameter file not found")
-    data = yaml.safe_load(path.read_text()) or {}
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a mapping of node names")
-    merged: dict = {}
-    found = False
-    for key in ("/**", node_name.lstrip("/"), "/" + node_name.lstrip("/")):
-        sec = data.get(key)
-        if sec is None:
-            continue
-        if not isinstance(sec, dict) or not isinstance(sec.get("ros__parameters", {}), dict):
-            raise ValueError(f"{path}: section '{key}' must hold a 'ros__parameters' mapping")
-        found = True
-        merged.update(_flatten(sec.get("ros__parameters") or {}))
-    if not found:
-        raise ValueError(f"{path}: no section for node '{node_name}' (sections: {', '.join(map(str, data))})")
-    return coerce_params(merged, str(path))
-
-
-def _flatten(d: dict, prefix: str = "") -> dict:
-    out = {}
-    for k, v in d.items():
-        name = f"{prefix}{k}"
-        if isinstance(v, dict):
-            out.update(_flatten(v, name + "."))
-        else:
-            out[name] = v
-    return out
-
-
 class GroundingNode(Node):
-    def __init__(self, node_name: str = NODE_NAME, overrides: dict | None = None, **kwargs):
-        over = [Parameter(k, value=v) for k, v in coerce_params(overrides or {}).items()]
-        super().__init__(node_name, parameter_overrides=over, **kwargs)
-        # -------------------------------------------------------------- parameters (one place)
-        for f in dataclasses.fields(NodeParams):
-            self.declare_parameter(f.name, getattr(NodeParams(), f.name))
-        self.p = NodeParams(**{n: self.get_parameter(n).value for n in PARAM_NAMES})
+    def __init__(self, node_name: str = NODE_NAME, **kwargs):
+        """Parameters come from rcl (--ros-args --params-file / -p, or `parameter_overrides`); a name
+        NodeParams does not declare, a wrong type, a value out of range or not among the choices is a
+        ValueError naming the parameter (rg-node prints it and exits 2)."""
+        super().__init__(node_name, **kwargs)
+        self.p = self._declare_params()
         p = self.p
         log = self.get_logger()
         if p.torch_threads > 0:
@@ -255,49 +198,53 @@ class GroundingNode(Node):
         self.input_errors: dict[str, int] = {}
 
         # -------------------------------------------------------------- interfaces
-        if p.pose_source not in POSE_SOURCES:
-            raise ValueError(f"parameter pose_source: '{p.pose_source}' is not one of {', '.join(POSE_SOURCES)}")
         self.tf = TFBuffer(p.tf_cache_time, p.tf_extrapolation, p.tf_max_gap)
         self._tf_pending: list[tuple[float, Frame, object]] = []   # (deadline, frame without pose, pose message)
         self._tf_lock = threading.Lock()   # the pending frames: touched by the sensor and the TF callbacks
         self.tf_dropped = 0
         roles = ("color", "depth", "info") + (("pose",) if p.pose_source != "tf" else ())
         self.sync = ApproximateTimeSync(roles, p.sync_queue_size, p.sync_slop, callback=self._on_synced)
-        sensors = MutuallyExclusiveCallbackGroup()
-        qos = qos_profile_sensor_data
-        color_type = CompressedImage if p.color_topic.rstrip("/").endswith("/compressed") else Image
-        depth_type = CompressedImage if p.depth_topic.rstrip("/").endswith("/compressedDepth") else Image
-        self.create_subscription(color_type, p.color_topic, lambda m: self._on_msg("color", m), qos,
-                                 callback_group=sensors)
-        self.create_subscription(depth_type, p.depth_topic, lambda m: self._on_msg("depth", m), qos,
-                                 callback_group=sensors)
-        self.create_subscription(CameraInfo, p.camera_info_topic, lambda m: self._on_msg("info", m), qos,
-                                 callback_group=sensors)
+        self.msgs_in = dict.fromkeys(roles, 0)   # messages taken per input (diagnostics 'messages')
+        # relative names, resolved through the remappings; a compressed transport subscribes to
+        # <base>/<transport> as image_transport does
+        self.topics = {"color": self._transport_topic("rgb/image", p.color_transport),
+                       "depth": self._transport_topic("depth/image", p.depth_transport),
+                       "info": self.resolve_topic_name("rgb/camera_info")}
+        types = {"color": Image if p.color_transport == "raw" else CompressedImage,
+                 "depth": Image if p.depth_transport == "raw" else CompressedImage, "info": CameraInfo}
         if p.pose_source == "topic":
-            self.create_subscription(PoseStamped, p.pose_topic, lambda m: self._on_msg("pose", m), qos,
-                                     callback_group=sensors)
+            self.topics["pose"], types["pose"] = self.resolve_topic_name("pose"), PoseStamped
         elif p.pose_source == "odometry":
             from nav_msgs.msg import Odometry
 
-            self.create_subscription(Odometry, p.odom_topic, lambda m: self._on_msg("pose", m), qos,
-                                     callback_group=sensors)
+            self.topics["pose"], types["pose"] = self.resolve_topic_name("odom"), Odometry
+        sensors = MutuallyExclusiveCallbackGroup()
+        for role, topic in self.topics.items():
+            self.create_subscription(types[role], topic, lambda m, r=role: self._on_msg(r, m), qos_profile_sensor_data,
+                                     callback_group=sensors, qos_overriding_options=_QOS_OVERRIDES)
         # TF in its own group: processed alongside the images, never queued behind them (at one message
         # per topic and executor turn, /tf fell behind the images on a loaded CPU and frames timed out)
         self._subscribe_tf(MutuallyExclusiveCallbackGroup())
 
         from rg_interfaces.srv import Ground
 
-        self.create_service(Ground, p.ground_service, self._on_ground, callback_group=MutuallyExclusiveCallbackGroup())
+        self.create_service(Ground, GROUND_SERVICE, self._on_ground, callback_group=MutuallyExclusiveCallbackGroup())
         admin = MutuallyExclusiveCallbackGroup()
         self.create_service(Trigger, "~/save_map", self._on_save, callback_group=admin)
         self.create_service(Trigger, "~/reset", self._on_reset, callback_group=admin)
 
-        self.pub_amodal = self.create_publisher(Image, "~/amodal_mask", 1)
-        self.pub_visible = self.create_publisher(Image, "~/visible_mask", 1)
-        self.pub_grounded = self.create_publisher(PointCloud2, "~/grounded_cloud", 1)
-        self.pub_markers = self.create_publisher(MarkerArray, "~/markers", 1)
-        self.pub_map_cloud = self.create_publisher(PointCloud2, "~/map_cloud", 1)
-        self.pub_status = self.create_publisher(DiagnosticArray, p.diagnostics_topic, 10)
+        def pub(kind, name, qos):
+            return self.create_publisher(kind, name, qos, qos_overriding_options=_QOS_OVERRIDES)
+
+        # the answer of the last /ground call is latched: RViz or `ros2 topic echo` started later still gets it
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.pub_amodal = pub(Image, "~/amodal_mask", 1)
+        self.pub_visible = pub(Image, "~/visible_mask", 1)
+        self.pub_grounded = pub(PointCloud2, "~/grounded_cloud", latched)
+        self.pub_markers = pub(MarkerArray, "~/markers", latched)
+        self.pub_map_cloud = pub(PointCloud2, "~/map_cloud", 1)
+        self.pub_status = pub(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
+        self._check_unknown_params(qos_only=True)   # qos_overrides.* exist once the entities do
 
         self.create_timer(max(p.status_period, 0.05), self._on_status, callback_group=MutuallyExclusiveCallbackGroup())
         if p.mask_rate > 0:
@@ -305,10 +252,54 @@ class GroundingNode(Node):
         if p.map_cloud_period > 0:
             self.create_timer(p.map_cloud_period, self._on_map_cloud, callback_group=MutuallyExclusiveCallbackGroup())
         self.worker.start()
-        pose_from = {"tf": f"TF {p.map_frame} <- image frame", "topic": f"PoseStamped {p.pose_topic}",
-                     "odometry": f"Odometry {p.odom_topic}"}[p.pose_source]
-        log.info(f"listening: colour {p.color_topic}, depth {p.depth_topic}, info {p.camera_info_topic}, "
-                 f"pose from {pose_from}; service {p.ground_service}; features {'on' if p.features else 'off'}")
+        pose_from = {"tf": f"TF {p.map_frame} <- image frame", "topic": f"PoseStamped {self.topics.get('pose')}",
+                     "odometry": f"Odometry {self.topics.get('pose')}"}[p.pose_source]
+        log.info(f"listening: colour {self.topics['color']}, depth {self.topics['depth']}, info {self.topics['info']}, "
+                 f"pose from {pose_from}; service {self.resolve_service_name(GROUND_SERVICE)}; "
+                 f"features {'on' if p.features else 'off'}")
+
+    # ------------------------------------------------------------------------------ parameters
+
+    def _declare_params(self) -> NodeParams:
+        """Declare every NodeParams field with its descriptor; return the values (see __init__)."""
+        # rclpy keeps this node's overrides (params files, -p, parameter_overrides) in _parameter_overrides.
+        # YAML `1` for a float parameter is an int there; rcl would refuse it as the wrong type.
+        overrides = self._parameter_overrides
+        for name, prm in list(overrides.items()):
+            f = PARAM_FIELDS.get(name)
+            if f is not None and isinstance(f.default, float) and prm.type_ == Parameter.Type.INTEGER:
+                overrides[name] = Parameter(name, value=float(prm.value))
+        self._check_unknown_params(qos_only=False)
+        values = {}
+        for name, f in PARAM_FIELDS.items():
+            try:
+                values[name] = self.declare_parameter(name, f.default, descriptor(name)).value
+            except InvalidParameterTypeException as exc:
+                got = overrides[name].value if name in overrides else None
+                raise ValueError(f"parameter '{name}' must be {type(f.default).__name__}, got {got!r}") from exc
+            except InvalidParameterValueException as exc:
+                raise ValueError(f"parameter '{name}': {exc}") from exc
+            choices = f.metadata["choices"]
+            if choices and values[name] not in choices:
+                raise ValueError(f"parameter '{name}': '{values[name]}' is not one of {', '.join(choices)}")
+        return NodeParams(**values)
+
+    def _check_unknown_params(self, qos_only: bool) -> None:
+        """An override naming no parameter of this node is an error (rclpy would ignore it silently)."""
+        def ours(n):
+            return n.startswith("qos_overrides.") if qos_only else not n.startswith("qos_overrides.")
+
+        unknown = sorted(n for n in self._parameter_overrides if ours(n) and n not in PARAM_FIELDS
+                         and not self.has_parameter(n))
+        if unknown:
+            known = (sorted(n for n in self._parameters if n.startswith("qos_overrides.")) if qos_only
+                     else list(PARAM_NAMES))
+            raise ValueError(f"unknown parameter '{unknown[0]}'" + (f" (and {len(unknown) - 1} more)" if len(unknown) > 1
+                             else "") + f"; known: {', '.join(known)}")
+
+    def _transport_topic(self, base: str, transport: str) -> str:
+        name = self.resolve_topic_name(base)
+        return name if transport == "raw" else f"{name}/{transport}"
 
     # ------------------------------------------------------------------------------ helpers
 
@@ -327,6 +318,7 @@ class GroundingNode(Node):
 
     def _on_msg(self, topic: str, msg) -> None:
         now = time.monotonic()
+        self.msgs_in[topic] += 1
         if topic == "info":
             self._last_info_time = now
         elif topic == "color":
@@ -335,7 +327,7 @@ class GroundingNode(Node):
             self._last_image_time = now
             since = now - (self._last_info_time if self._last_info_time is not None else self._first_image_time)
             if since > self.p.camera_info_timeout:
-                self._warn("camera_info", f"no CameraInfo on {self.p.camera_info_topic} for {since:.1f} s: "
+                self._warn("camera_info", f"no CameraInfo on {self.topics['info']} for {since:.1f} s: "
                            "frames cannot be mapped without intrinsics")
         try:
             self.sync.add(topic, cv.from_time(msg.header.stamp), msg)
@@ -349,11 +341,11 @@ class GroundingNode(Node):
         try:
             rgb = cv.image_to_rgb(color)
         except ValueError as exc:
-            return self._warn("color", f"colour image rejected ({p.color_topic}): {exc}")
+            return self._warn("color", f"colour image rejected ({self.topics['color']}): {exc}")
         try:
             d = cv.image_to_depth(depth)
         except ValueError as exc:
-            return self._warn("depth", f"depth image rejected ({p.depth_topic}): {exc}")
+            return self._warn("depth", f"depth image rejected ({self.topics['depth']}): {exc}")
         if d.shape != rgb.shape[:2]:
             return self._warn("size", f"frame rejected: colour is {rgb.shape[1]}x{rgb.shape[0]} but depth is "
                               f"{d.shape[1]}x{d.shape[0]} (depth must be registered to the colour image)")
@@ -371,7 +363,7 @@ class GroundingNode(Node):
             try:
                 c2w = cv.pose_to_matrix(pose)
             except ValueError as exc:   # PoseError: NaN, inf, non-unit quaternion
-                return self._warn("pose", f"frame rejected: bad pose on {p.pose_topic}: {exc}")
+                return self._warn("pose", f"frame rejected: bad pose on {self.topics['pose']}: {exc}")
             return self._submit(Frame(rgb, d, K, c2w, s.stamps[0], color.header.frame_id), color.header.stamp, w, h)
         frame = Frame(rgb, d, K, np.eye(4), s.stamps[0], color.header.frame_id)
         with self._tf_lock:
@@ -453,7 +445,7 @@ class GroundingNode(Node):
                     self._tf_drop(frame, pose_msg, str(exc))
                 continue
             except ValueError as exc:   # PoseError: NaN / bad quaternion in the odometry
-                self._warn("pose", f"frame rejected: bad pose on {self.p.odom_topic}: {exc}")
+                self._warn("pose", f"frame rejected: bad pose on {self.topics['pose']}: {exc}")
                 continue
             self._submit(frame, stamp_msg, w, h)
         self._tf_pending = keep
@@ -557,6 +549,7 @@ class GroundingNode(Node):
         st = self.worker.stats()
         st["sync_dropped"] = sum(self.sync.dropped.values())
         st["input_errors"] = dict(self.input_errors)
+        st["messages"] = dict(self.msgs_in)
         st["pose_source"] = self.p.pose_source
         st["tf_dropped"] = self.tf_dropped
         st["tf_waiting"] = len(self._tf_pending)
@@ -569,7 +562,7 @@ class GroundingNode(Node):
         elif st["perception"].startswith("failed"):
             level, msg = DiagnosticStatus.WARN, f"perception {st['perception']}"
         elif self._last_image_time is not None and self._last_info_time is None:
-            level, msg = DiagnosticStatus.WARN, f"no CameraInfo on {self.p.camera_info_topic}"
+            level, msg = DiagnosticStatus.WARN, f"no CameraInfo on {self.topics['info']}"
         else:
             level, msg = DiagnosticStatus.OK, (f"{st['keyframes']} keyframes, {st['gaussians']} Gaussians, "
                                                f"queue {st['queue']}/{st['queue_size']}, {st['dropped']} dropped")
@@ -615,20 +608,50 @@ class _RosLogAdapter:
         self._l.error(self._fmt(msg, args))
 
 
-def spin(node: GroundingNode) -> int:
-    """Spin `node` with a multi-threaded executor until SIGINT / shutdown; then stop it cleanly."""
+class StopSignals:
+    """SIGINT / SIGTERM set an event instead of raising: a terminal's Ctrl-C, `ros2 launch` (which
+    also forwards SIGINT to the process group it already reached, so a second signal comes during
+    shutdown) and systemd's SIGTERM all end in one orderly stop. Install before rclpy.init with
+    signal_handler_options=NO, so rclpy does not shut the context down under the node."""
+
+    def __init__(self):
+        self.event = threading.Event()
+        self.signum: int | None = None
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, self._on_signal)
+
+    def _on_signal(self, signum, _frame) -> None:
+        if self.signum is None:
+            self.signum = signum
+        self.event.set()
+
+
+def spin(node: GroundingNode, stop: StopSignals) -> int:
+    """Spin `node` with a multi-threaded executor until a stop signal (or the context ends); then stop
+    the worker after its current step, save the map if configured, and return exit code 0."""
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 
-    executor = MultiThreadedExecutor(num_threads=6)
+    executor = MultiThreadedExecutor(num_threads=6, context=node.context)
     executor.add_node(node)
-    try:
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
+
+    def run():
+        try:
+            executor.spin()
+        except ExternalShutdownException:
+            pass
+        finally:
+            stop.event.set()
+
+    thread = threading.Thread(target=run, name="rg-executor", daemon=True)
+    thread.start()
+    while not stop.event.wait(0.5):
         pass
-    finally:
-        node.get_logger().info("shutting down")
-        node.shutdown()
-        executor.shutdown(timeout_sec=5)
-        node.destroy_node()
-        rclpy.try_shutdown()
+    why = signal.Signals(stop.signum).name if stop.signum is not None else "context shut down"
+    node.get_logger().info(f"shutting down ({why})")
+    node.shutdown()
+    executor.shutdown(timeout_sec=5)
+    thread.join(5)
+    context = node.context
+    node.destroy_node()
+    rclpy.try_shutdown(context=context)
     return 0

@@ -12,16 +12,34 @@ from __future__ import annotations
 import time
 
 
-def wait_for_subscribers(pubs: list, timeout: float, settle: float = 0.5) -> bool:
-    """Wait up to `timeout` s until every publisher in `pubs` has a subscription, then `settle` s
-    more for the subscribers' side of discovery. Returns whether all were matched."""
+def replay_qos(latched: bool = False):
+    """What rg-replay publishes with: reliable, depth 100 (volatile, or transient local for /tf_static).
+    Best-effort (SensorDataQoS) subscribers accept it and may lose messages; a subscriber overridden to
+    reliable (qos_overrides) with a deep enough history gets every one."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+
+
+def wait_for_subscribers(pubs: list, timeout: float, settle: float = 0.5, minimum: int = 1) -> list[str]:
+    """Wait up to `timeout` s until every publisher in `pubs` has at least `minimum` subscriptions,
+    then `settle` s more for the subscribers' side of discovery. Returns the topics still short of
+    subscribers (empty when all matched)."""
     t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end and any(p.get_subscription_count() == 0 for p in pubs):
+    while time.monotonic() < t_end and any(p.get_subscription_count() < minimum for p in pubs):
         time.sleep(0.05)
-    matched = all(p.get_subscription_count() > 0 for p in pubs)
-    if matched and timeout > 0:
+    short = [p.topic_name for p in pubs if p.get_subscription_count() < minimum]
+    if not short and timeout > 0:
         time.sleep(settle)
-    return matched
+    return short
+
+
+def report_unmatched(log, short: list[str], timeout: float, minimum: int) -> None:
+    """Say which topics nobody listens to (their messages go nowhere), as `ros2 bag play` users expect."""
+    if short:
+        log.warning(f"after {timeout:g} s, fewer than {minimum} subscriber(s) on {', '.join(short)}: "
+                    "their messages go nowhere (is the node running, with matching names and domain?)")
 
 
 def flush_publishers(pubs: list, timeout: float = 3.0) -> bool:

@@ -11,9 +11,10 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 
-from .node import NODE_NAME, NodeParams
-from .publish_util import flush_publishers, wait_for_subscribers
+from .node import GROUND_SERVICE, INPUTS, NodeParams
+from .publish_util import replay_qos, flush_publishers, report_unmatched, wait_for_subscribers
 
 
 def _split_ros_args(argv: list[str] | None) -> tuple[list[str], list[str]]:
@@ -28,30 +29,41 @@ def _split_ros_args(argv: list[str] | None) -> tuple[list[str], list[str]]:
 # ------------------------------------------------------------------------------------ rg-node
 
 def node_main(argv: list[str] | None = None) -> int:
-    ours, ros_argv = _split_ros_args(argv)
-    ap = argparse.ArgumentParser(prog="rg-node", description="ReasonGrounder mapping + grounding node")
-    ap.add_argument("--params", help="ros__parameters YAML (e.g. config/grounding.yaml); read and declared "
-                                     "by the node (unknown names are an error)")
-    ap.add_argument("--name", default=NODE_NAME, help=f"node name (default {NODE_NAME}); also selects the "
-                                                      "YAML section")
-    args = ap.parse_args(ours)
-    from .node import GroundingNode, read_params_file, spin
+    """rg-node = `ros2 run rg_ros rg-node`: names and parameters come from --ros-args (-r, -p,
+    --params-file); --params FILE is short for --ros-args --params-file FILE."""
+    from .node import StopSignals
 
-    try:
-        overrides = read_params_file(args.params, args.name) if args.params else {}
-    except ValueError as exc:
-        print(f"rg-node: {exc}", file=sys.stderr)
+    stop = StopSignals()   # first: a Ctrl-C while the models load still ends cleanly
+    ours, ros_argv = _split_ros_args(argv)
+    ap = argparse.ArgumentParser(prog="rg-node", description="ReasonGrounder mapping + grounding node. Inputs "
+                                 "rgb/image, depth/image, rgb/camera_info (pose, odom) and the service 'ground' are "
+                                 "relative names: remap them with --ros-args -r rgb/image:=/camera/color/image_raw")
+    ap.add_argument("--params", help="ros__parameters YAML (e.g. config/grounding.yaml): --ros-args --params-file")
+    ap.add_argument("--name", default=None, help="node name (default rg_node; same as --ros-args -r __node:=NAME)")
+    args = ap.parse_args(ours)
+    extra = (["-r", f"__node:={args.name}"] if args.name else []) + (["--params-file", args.params] if args.params else [])
+    if extra:   # rcl takes any number of --ros-args sections
+        ros_argv = ros_argv + ["--ros-args", *extra]
+    if args.params and not Path(args.params).is_file():
+        print(f"rg-node: {args.params}: parameter file not found", file=sys.stderr)
         return 2
     import rclpy
+    from rclpy.signals import SignalHandlerOptions
 
-    rclpy.init(args=ros_argv)
+    from .node import GroundingNode, spin
+
     try:
-        node = GroundingNode(args.name, overrides)
-    except Exception as exc:  # noqa: BLE001 - bad map file, bad config: say why and exit
+        rclpy.init(args=ros_argv, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as exc:  # noqa: BLE001 - rcl's parser: a malformed params file or argument
+        print(f"rg-node: cannot start: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 2
+    try:
+        node = GroundingNode()
+    except Exception as exc:  # noqa: BLE001 - bad map file, bad parameter: say why and exit
         print(f"rg-node: cannot start: {type(exc).__name__}: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2
-    return spin(node)
+    return spin(node, stop)
 
 
 # ---------------------------------------------------------------------------------- rg-ground
@@ -81,7 +93,7 @@ def ground_main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mode", default="auto", help="auto (default), explicit or implicit")
     ap.add_argument("--max-results", type=int, default=0, help="0 = the node's default")
     ap.add_argument("--timeout", type=float, default=60.0, help="seconds for discovery plus the call")
-    ap.add_argument("--service", default=NodeParams.ground_service)
+    ap.add_argument("--service", default="/" + GROUND_SERVICE)
     args = ap.parse_args(ours)
     import rclpy
     from rg_interfaces.srv import Ground
@@ -152,13 +164,15 @@ def replay_main(argv: list[str] | None = None) -> int:
     ap.add_argument("--loop", action="store_true", help="start again after the last frame (stamps keep increasing)")
     ap.add_argument("--count", type=int, default=0, help="stop after this many frames (0 = one pass or forever with --loop)")
     ap.add_argument("--split", choices=("train", "test", "all"), default="train")
-    ap.add_argument("--wait", type=float, default=5.0, help="seconds to wait for a subscriber before publishing")
+    ap.add_argument("--wait", type=float, default=5.0, help="seconds to wait for subscribers on every topic before "
+                                                              "publishing (then publish anyway, naming the topics without)")
+    ap.add_argument("--min-subscribers", type=int, default=1, help="subscriptions every topic waits for (default 1)")
     ap.add_argument("--frame-id", default="camera_color_optical_frame")
     ap.add_argument("--map-frame", default=d.map_frame)
-    ap.add_argument("--color-topic", default=d.color_topic)
-    ap.add_argument("--depth-topic", default=d.depth_topic)
-    ap.add_argument("--camera-info-topic", default=d.camera_info_topic)
-    ap.add_argument("--pose-topic", default=d.pose_topic)
+    ap.add_argument("--color-topic", default=INPUTS["rgb/image"])
+    ap.add_argument("--depth-topic", default=INPUTS["depth/image"])
+    ap.add_argument("--camera-info-topic", default=INPUTS["rgb/camera_info"])
+    ap.add_argument("--pose-topic", default=INPUTS["pose"])
     args = ap.parse_args(ours)
     if args.rate is not None and not args.rate > 0:
         ap.error("--rate must be > 0")
@@ -184,12 +198,11 @@ def replay_main(argv: list[str] | None = None) -> int:
         return 2
     import rclpy
     from geometry_msgs.msg import PoseStamped
-    from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import CameraInfo, Image
 
     rclpy.init(args=ros_argv)
     node = rclpy.create_node("rg_replay")
-    qos = qos_profile_sensor_data
+    qos = replay_qos()
     pubs = [node.create_publisher(Image, args.color_topic, qos), node.create_publisher(Image, args.depth_topic, qos),
             node.create_publisher(CameraInfo, args.camera_info_topic, qos),
             node.create_publisher(PoseStamped, args.pose_topic, qos)]
@@ -197,7 +210,8 @@ def replay_main(argv: list[str] | None = None) -> int:
     log = node.get_logger()
     sent = 0
     try:
-        wait_for_subscribers(pubs, args.wait)
+        report_unmatched(log, wait_for_subscribers(pubs + ([tf_pub] if tf_pub else []), args.wait,
+                                                   minimum=args.min_subscribers), args.wait, args.min_subscribers)
         period = 1.0 / args.rate
         next_t = time.monotonic()
         while True:
@@ -229,9 +243,7 @@ def _tf_publisher(node):
         from tf2_msgs.msg import TFMessage
     except ImportError:
         return None
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-
-    return node.create_publisher(TFMessage, "/tf", QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    return node.create_publisher(TFMessage, "/tf", replay_qos())
 
 
 def _pose_to_tf(pose, child: str):

@@ -120,4 +120,36 @@ else
   echo "$WANT" > "$STAMP"
   echo "$WANT_DEMO" > "$DEMO_STAMP"
 fi
+
+# ---- the ROS layout: `ros2 run rg_ros ...` and `ros2 launch rg_ros ...` (full profile) -------------
+if [ "$RG_PROFILE" = full ]; then
+  # share/rg_ros/{package.xml,launch,config}, lib/rg_ros/ executables and the ament index marker:
+  # setup.py's data_files, which an editable install leaves out (under a second; refreshed every run
+  # so edits to launch/ and config/ reach the installed copies)
+  (cd "$ROOT" && "$VENV/bin/python" setup.py -q install_data --install-dir "$VENV" --force >/dev/null 2>&1) \
+    || { echo "bootstrap: installing the ROS layout (setup.py install_data) failed" >&2; exit 1; }
+  # The `ros2` command (ros2cli, launch, launch_ros) has no wheel: a full ROS 2 install brings its own;
+  # otherwise install the copy in ../shared/vendor/ros2cli (RG_ROS2CLI_DIR) once (about 15-60 s).
+  ROS2CLI_DIR="${RG_ROS2CLI_DIR:-$ROOT/../shared/vendor/ros2cli}"
+  CLI_STAMP="$VENV/.rg_ros2cli_stamp"
+  if ! PATH="${PATH//$VENV\/bin:/}" command -v ros2 >/dev/null && [ -f "$ROS2CLI_DIR/install.sh" ]; then
+    want_cli="$(cat "$ROS2CLI_DIR/install.sh" <(ls "$ROS2CLI_DIR/wheels") | sha256sum | cut -d' ' -f1)"
+    if [ ! -x "$VENV/bin/ros2" ] || [ "$(cat "$CLI_STAMP" 2>/dev/null)" != "$want_cli" ]; then
+      echo "bootstrap: installing the ros2 command line from $ROS2CLI_DIR" >&2
+      bash "$ROS2CLI_DIR/install.sh" "$VENV" 2>&1 | grep -v "^WARNING: Location" >&2
+      echo "$want_cli" > "$CLI_STAMP"
+    fi
+  elif ! command -v ros2 >/dev/null; then
+    echo "bootstrap: no ros2 command and no $ROS2CLI_DIR: the ros2 launch/run/service tests are skipped" >&2
+  fi
+fi
+# ros2 finds packages through AMENT_PREFIX_PATH, which the PyPI wheels never set; the venv's
+# activate script sets it too (for `source .venv/bin/activate`)
+case ":${AMENT_PREFIX_PATH:-}:" in *":$VENV:"*) ;; *) export AMENT_PREFIX_PATH="$VENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}";; esac
+if [ -f "$VENV/bin/activate" ] && ! grep -q "rg_ros: AMENT_PREFIX_PATH" "$VENV/bin/activate"; then
+  cat >> "$VENV/bin/activate" <<'ACT'
+# rg_ros: AMENT_PREFIX_PATH (ros2 run / ros2 launch find rg_ros, rg_interfaces and the wheels here)
+case ":${AMENT_PREFIX_PATH:-}:" in *":$VIRTUAL_ENV:"*) ;; *) export AMENT_PREFIX_PATH="$VIRTUAL_ENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}";; esac
+ACT
+fi
 export PATH="$VENV/bin:$PATH"

@@ -12,6 +12,7 @@ REPO = Path(__file__).resolve().parents[1]
 LAUNCH = REPO / "launch" / "grounding.launch.py"
 PARAMS = REPO / "config" / "grounding.yaml"
 RVIZ = REPO / "config" / "grounding.rviz"
+PACKAGE_MARKER = "rg_ros"   # resource/rg_ros: the ament index entry
 
 
 def _kw(call: ast.Call, name: str):
@@ -40,6 +41,27 @@ def console_scripts() -> dict[str, str]:
     raise AssertionError("no setup() call in setup.py")
 
 
+def launch_remaps(camera: str = "/camera") -> dict[str, str]:
+    """The launch file's default remappings of rg_node's inputs for a `camera` namespace (ast: the
+    REMAPS table and the odom default)."""
+    tree = ast.parse(LAUNCH.read_text())
+    table = next(ast.literal_eval(n.value) for n in ast.walk(tree) if isinstance(n, ast.Assign)
+                 and getattr(n.targets[0], "id", None) == "REMAPS")
+    out = {name: camera + suffix for name, (_, suffix) in table.items()}
+    for n in ast.walk(tree):
+        if isinstance(n, ast.Call) and getattr(n.func, "id", None) == "DeclareLaunchArgument" and n.args \
+                and isinstance(n.args[0], ast.Constant) and n.args[0].value == "odom_topic":
+            out["odom"] = ast.literal_eval(_kw(n, "default_value"))
+    return out
+
+
+def test_launch_remaps_match_the_node_defaults():
+    """The launch file's camera topics are rg_ros.node.INPUTS (where rg-replay publishes)."""
+    from rg_ros.node import INPUTS
+
+    assert launch_remaps() == INPUTS
+
+
 def test_launch_executables_are_console_scripts():
     scripts = console_scripts()
     nodes = launch_nodes()
@@ -63,21 +85,38 @@ def test_console_scripts_resolve():
 
 
 def test_parameter_file_matches_declared_parameters():
-    from rg_ros.node import NODE_NAME, NodeParams, read_params_file
+    """config/grounding.yaml holds every declared parameter with its default and type, and nothing else."""
+    from rg_ros.node import NODE_NAME, PARAM_FIELDS, NodeParams, descriptor
 
     data = yaml.safe_load(PARAMS.read_text())
     assert list(data) == [NODE_NAME] and any(n.get("name") == NODE_NAME for n in launch_nodes())
-    in_file = set(data[NODE_NAME]["ros__parameters"])
-    declared = {f.name for f in dataclasses.fields(NodeParams)}
-    assert in_file - declared == set(), f"in grounding.yaml but not declared: {in_file - declared}"
-    assert declared - in_file == set(), f"declared but missing from grounding.yaml: {declared - in_file}"
-    values = read_params_file(PARAMS)   # types match the declared defaults
+    values = data[NODE_NAME]["ros__parameters"]
+    assert set(values) - set(PARAM_FIELDS) == set(), f"in grounding.yaml but not declared: {set(values) - set(PARAM_FIELDS)}"
+    assert set(PARAM_FIELDS) - set(values) == set(), f"declared but missing from grounding.yaml: {set(PARAM_FIELDS) - set(values)}"
+    for name, v in values.items():
+        assert type(v) is type(PARAM_FIELDS[name].default), (name, v)   # rcl refuses 1 for a bool, "x" for an int
     assert values == dataclasses.asdict(NodeParams()), "grounding.yaml should hold the defaults"
+    for name, f in PARAM_FIELDS.items():   # every parameter documents itself for `ros2 param describe`
+        d = descriptor(name)
+        assert d.description and d.read_only, name
+        if isinstance(f.default, (int, float)) and not isinstance(f.default, bool):
+            rng = (d.floating_point_range or d.integer_range)
+            assert rng and rng[0].from_value <= f.default <= rng[0].to_value, name
 
 
 def test_data_files_ship_launch_and_configs():
+    """setup.py's data_files give the layout ros2 needs: the ament index marker, share/rg_ros and
+    the lib/rg_ros executables (wrappers of the console scripts)."""
     text = (REPO / "setup.py").read_text()
     assert 'Path("launch").glob("*.launch.py")' in text and 'Path("config").glob("*.rviz")' in text
+    assert 'f"lib/{PACKAGE}"' in text and (REPO / "resource" / PACKAGE_MARKER).is_file()
+    scripts = console_scripts()
+    wrappers = sorted(p.name for p in (REPO / "resource" / "libexec").iterdir())
+    assert wrappers == sorted(s for s in scripts if s != "rg"), wrappers
+    for name in wrappers:
+        path = REPO / "resource" / "libexec" / name
+        assert path.stat().st_mode & 0o111, f"{path} is not executable"
+        assert f'/../../bin/{name}"' in path.read_text()
 
 
 def test_rviz_config_shows_the_node_topics():
@@ -89,28 +128,6 @@ def test_rviz_config_shows_the_node_topics():
     for t in ("map_cloud", "grounded_cloud", "markers", "amodal_mask", "visible_mask"):
         assert f"/{NODE_NAME}/{t}" in topics
     assert cfg["Visualization Manager"]["Global Options"]["Fixed Frame"] == "map"
-    node_src = (REPO / "rg_ros" / "node.py").read_text()
-    for t in ("map_cloud", "grounded_cloud", "markers", "amodal_mask", "visible_mask"):
-        assert f'"~/{t}"' in node_src
-
-
-def test_bad_parameter_files_are_refused(tmp_path):
-    import pytest
-
-    from rg_ros.node import read_params_file
-
-    p = tmp_path / "p.yaml"
-    p.write_text("rg_node:\n  ros__parameters:\n    colour_topic: /x\n")
-    with pytest.raises(ValueError, match="unknown parameter 'colour_topic'"):
-        read_params_file(p)
-    p.write_text("rg_node:\n  ros__parameters:\n    frame_queue_size: two\n")
-    with pytest.raises(ValueError, match="frame_queue_size"):
-        read_params_file(p)
-    p.write_text("other:\n  ros__parameters: {}\n")
-    with pytest.raises(ValueError, match="no section"):
-        read_params_file(p)
-    p.write_text("/**:\n  ros__parameters:\n    sync_slop: 1\n")
-    assert read_params_file(p) == {"sync_slop": 1.0}
 
 
 # Import name -> rosdep key of package.xml. Modules without a rosdep key must be named (by their pip

@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 import pytest
-from test_ros_node import start, stop, wait_for, write_params
+from test_ros_node import ros_args, start, stop, wait_for, write_params
 
 pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs is not installed: scripts/bootstrap.sh builds it from msg_tf2/")
 pytest.importorskip("rosbags")
@@ -35,8 +35,12 @@ from tf2_msgs.msg import TFMessage  # noqa: E402
 from conftest import need_rgbd  # noqa: E402
 from rg_core.io.rosbag_write import COLOR_TOPIC, DEPTH_TOPIC, INFO_TOPIC, OPTICAL_FRAME, write_scene_bag  # noqa: E402
 from rg_ros import convert as cv  # noqa: E402
+from rg_ros.publish_util import replay_qos  # noqa: E402
 
 N = 20
+# the node's inputs -> the bag's topics (image_transport: the base names of the compressed streams)
+BAG_INPUTS = {"rgb/image": COLOR_TOPIC.rsplit("/", 1)[0], "depth/image": DEPTH_TOPIC.rsplit("/", 1)[0],
+              "rgb/camera_info": INFO_TOPIC}
 MISSING = [5, 15]   # 10 % of the frames lose their odom -> base_link sample
 WIDTH, ITERS = 160, 3
 
@@ -52,12 +56,16 @@ class BagHarness:
         self.bag = write_scene_bag(self.frames, tmp / "good")
         self.gap_bag = write_scene_bag(self.frames, tmp / "gaps", stamp0=1_700_001_000.0, tf_missing=MISSING)
         self.log = tmp / "node.log"
-        params = write_params(tmp / "n.yaml", "rg_node", color_topic=COLOR_TOPIC, depth_topic=DEPTH_TOPIC,
-                              camera_info_topic=INFO_TOPIC, map_width=WIDTH, iters_per_keyframe=ITERS,
+        # The inputs reliable with a deep history (qos_overrides; the default SensorDataQoS may lose a
+        # message on a loaded CPU): the map must equal the headless one on the same 20 frames
+        reliable = {"subscription": {"reliability": "reliable", "depth": 100}}
+        params = write_params(tmp / "n.yaml", "rg_node", color_transport="compressed", depth_transport="compressedDepth",
+                              qos_overrides={t: reliable for t in (COLOR_TOPIC, DEPTH_TOPIC, INFO_TOPIC)},
+                              map_width=WIDTH, iters_per_keyframe=ITERS,
                               torch_threads=1, frame_queue_size=64, features=True, train_slice=0.5,
                               train_seconds_max=2.0, status_period=0.3, tf_max_gap=0.12, map_cloud_period=0.0, tf_wait=2.0,
                               mask_rate=0.0)
-        self.node_p = start(["node", "--params", str(params)], self.log)
+        self.node_p = start(["node", "--params", str(params), *ros_args(BAG_INPUTS)], self.log)
         self.json = json
         self.ctx = rclpy.Context()
         rclpy.init(context=self.ctx)
@@ -67,7 +75,7 @@ class BagHarness:
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_status, 10)
         self.ground = self.node.create_client(Ground, "/ground")
         self.reset = self.node.create_client(Trigger, "/rg_node/reset")
-        q = qos_profile_sensor_data
+        q = replay_qos()   # reliable: the node's inputs are overridden to reliable (a best-effort writer cannot serve them)
         self.pub_color = self.node.create_publisher(CompressedImage, COLOR_TOPIC, q)
         self.pub_depth = self.node.create_publisher(CompressedImage, DEPTH_TOPIC, q)
         self.pub_info = self.node.create_publisher(CameraInfo, INFO_TOPIC, q)
@@ -79,6 +87,8 @@ class BagHarness:
 
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
         self.thread.start()
+        wait_for(lambda: self.status or self.node_p.poll() is not None, 120, "the node's first status")
+        assert self.node_p.poll() is None, f"rg-node exited {self.node_p.returncode}:\n{self.node_log()[-3000:]}"
 
     def _on_status(self, msg):
         for s in msg.status:
@@ -161,6 +171,9 @@ def test_replayed_bag_builds_the_same_map_and_answers_ground(h):
     # takes no lock), so frames == N with an empty queue can still be the last frame half-way through
     st = wait_for(lambda: h.status if h.status.get("mapped", 0) >= N and h.status.get("queue") == 0 else None,
                   240, lambda: f"{N} frames mapped (status {h.status})")
+    # reliable inputs: every message arrived, and every frame received was mapped (nothing dropped)
+    assert st["messages"] == {"color": N, "depth": N, "info": N}, st["messages"]
+    assert st["received"] == st["mapped"] == N and st["sync_dropped"] == 0, st
     assert st["tf_dropped"] == 0 and st["dropped"] == 0 and st["rejected"] == 0, st
     assert st["pose_source"] == "tf" and set(st["input_errors"]) == set(), st["input_errors"]
     ref = headless_gaussians(h.bag)
@@ -253,32 +266,43 @@ def test_replay_of_a_truncated_bag_is_a_clear_error(h):
 
 
 def test_replay_loop_keeps_stamps_increasing(h, tmp_path):
-    """--loop: the second pass comes with stamps shifted by the bag's duration (probe on /tf)."""
+    """--loop: later passes come with stamps shifted by the bag's duration (probe on /tf). The replay
+    waits for both /tf subscribers (the node and this probe) and /tf is reliable: every message arrives."""
     got = []
     sub = h.node.create_subscription(TFMessage, "/tf", lambda m: got.extend(
         cv.from_time(t.header.stamp) for t in m.transforms if t.child_frame_id == "base_link"), 100)
     try:
         small = write_scene_bag(h.frames[:3], tmp_path / "small", stamp0=1_700_002_000.0)
-        # 8 /tf messages per pass (3 odom -> base_link); 3 passes, the first may be partly missed by the
-        # probe if discovery is slow
-        rep = h.replay(small, "--topics", "/tf", "--loop", "--count", "22", "--rate", "0.5")
+        from rosbags.highlevel import AnyReader
+
+        with AnyReader([small]) as r:   # odom -> base_link transforms among the first 22 /tf messages
+            per_pass = [any(t.child_frame_id == "base_link" for t in r.deserialize(raw, c.msgtype).transforms)
+                        for c, _, raw in r.messages(connections=[c for c in r.connections if c.topic == "/tf"])]
+        expected = sum(per_pass[i % len(per_pass)] for i in range(22))
+        rep = h.replay(small, "--topics", "/tf", "--loop", "--count", "22", "--rate", "0.5", "--min-subscribers", "2")
         assert rep.returncode == 0 and "(3 passes)" in rep.stdout + rep.stderr, rep.stdout + rep.stderr
-        wait_for(lambda: len(got) >= 5, 10, f"odom -> base_link on /tf from several passes (got {got})")
-        assert all(b > a for a, b in zip(got, got[1:])), got
+        assert "go nowhere" not in rep.stdout + rep.stderr, rep.stdout + rep.stderr
+        wait_for(lambda: len(got) >= expected, 10, lambda: f"{expected} odom -> base_link on /tf (got {got})")
+        assert len(got) == expected and all(b > a for a, b in zip(got, got[1:])), got
         assert got[-1] - got[0] > 0.5, got   # stamps from different passes (a pass spans 0.13 s of stamps)
     finally:
         h.node.destroy_subscription(sub)
 
 
 def test_realsense_params_match_the_recorded_topics():
-    """config/realsense.yaml names the topics a realsense2_camera bag holds (what rosbag_write writes)."""
+    """config/realsense.yaml under the launch file's camera:=/camera/camera names the topics a
+    realsense2_camera bag holds (what rosbag_write writes)."""
     from pathlib import Path
 
-    from rg_ros.node import read_params_file
+    import yaml
+    from test_launch_static import launch_remaps
 
-    p = read_params_file(Path(__file__).resolve().parents[1] / "config" / "realsense.yaml")
-    assert (p["color_topic"], p["depth_topic"], p["camera_info_topic"]) == (COLOR_TOPIC, DEPTH_TOPIC, INFO_TOPIC)
-    assert p["pose_source"] == "tf"
+    p = yaml.safe_load((Path(__file__).resolve().parents[1] / "config" / "realsense.yaml").read_text())
+    p = p["rg_node"]["ros__parameters"]
+    topics = launch_remaps(camera="/camera/camera")
+    assert f"{topics['rgb/image']}/{p['color_transport']}" == COLOR_TOPIC
+    assert f"{topics['depth/image']}/{p['depth_transport']}" == DEPTH_TOPIC
+    assert topics["rgb/camera_info"] == INFO_TOPIC and p["pose_source"] == "tf"
 
 
 def test_odometry_pose_source(h):
@@ -294,12 +318,15 @@ def test_odometry_pose_source(h):
 
     save = h.tmp / "c.pt"
     topics = {"color_topic": "/c/color/image_raw/compressed", "depth_topic": "/c/depth/image_raw/compressedDepth",
-              "camera_info_topic": "/c/info", "odom_topic": "/c/odom"}
-    params = write_params(h.tmp / "c.yaml", "rg_node_c", **topics, pose_source="odometry", features=False,
+              "camera_info_topic": "/c/info", "odom_topic": "/c/odom"}   # what node C subscribes (remapped below)
+    params = write_params(h.tmp / "c.yaml", "rg_node_c", pose_source="odometry", features=False,
+                          color_transport="compressed", depth_transport="compressedDepth",
                           map_width=80, iters_per_keyframe=1, torch_threads=1, status_period=0.3,
-                          ground_service="/ground_c", save_path=str(save), frame_queue_size=16, tf_wait=2.0)
+                          save_path=str(save), frame_queue_size=16, tf_wait=2.0)
     log = h.tmp / "node_c.log"
-    node_c = start(["node", "--params", str(params), "--name", "rg_node_c"], log)
+    remap = {"rgb/image": "/c/color/image_raw", "depth/image": "/c/depth/image_raw", "rgb/camera_info": "/c/info",
+             "odom": "/c/odom", "ground": "/ground_c"}
+    node_c = start(["node", "--params", str(params), "--name", "rg_node_c", *ros_args(remap)], log)
     q = qos_profile_sensor_data
     pubs = [h.node.create_publisher(CompressedImage, topics["color_topic"], q),
             h.node.create_publisher(CompressedImage, topics["depth_topic"], q),

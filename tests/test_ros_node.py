@@ -39,16 +39,31 @@ from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from rg_ros import convert as cv  # noqa: E402
+from rg_ros.node import INPUTS  # noqa: E402
 from rg_ros.tools import frame_messages  # noqa: E402
 
 OPTICAL = "camera_color_optical_frame"
-TOPICS_B = {"color_topic": "/b/color", "depth_topic": "/b/depth", "camera_info_topic": "/b/info", "pose_topic": "/b/pose"}
+TOPICS_A = dict(INPUTS)   # the launch file's remappings, where rg-replay publishes
+TOPICS_B = {"rgb/image": "/b/color", "depth/image": "/b/depth", "rgb/camera_info": "/b/info", "pose": "/b/pose"}
+
+
+def ros_args(remap: dict[str, str]) -> list[str]:
+    """--ros-args -r NAME:=TARGET for each entry (the node's relative names set by remapping)."""
+    out = ["--ros-args"]
+    for name, target in remap.items():
+        out += ["-r", f"{name}:={target}"]
+    return out
 
 
 def write_params(path: Path, name: str, **params) -> Path:
+    """A ros__parameters file (rcl's parser refuses YAML aliases: repeated values are written out)."""
     import yaml
 
-    path.write_text(yaml.safe_dump({name: {"ros__parameters": params}}))
+    class NoAliases(yaml.SafeDumper):
+        def ignore_aliases(self, data):
+            return True
+
+    path.write_text(yaml.dump({name: {"ros__parameters": params}}, Dumper=NoAliases))
     return path
 
 
@@ -91,7 +106,7 @@ class Harness:
                               frame_queue_size=2, features=True, train_slice=0.5, train_seconds_max=2.0,
                               status_period=0.3, save_path=str(self.save_a), mask_rate=4.0, map_cloud_period=1.0,
                               max_query_chars=2000, camera_info_timeout=3.0)
-        self.node_a = start(["node", "--params", str(params)], self.log_a)
+        self.node_a = start(["node", "--params", str(params), *ros_args(TOPICS_A)], self.log_a)
         self.scene = tmp / "scene"   # made while node A starts
         subprocess.run([sys.executable, "-m", "rg_core.cli", "synth", str(self.scene), "--views", "12", "--size",
                         "160x120", "--seed", "3", "--objects", "4", "--json", "--quiet"], env=dict(os.environ),
@@ -120,6 +135,8 @@ class Harness:
         self.executor.add_node(self.node)
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
         self.thread.start()
+        wait_for(lambda: self.st() or self.node_a.poll() is not None, 120, "node A's first status")
+        assert self.node_a.poll() is None, f"rg-node exited {self.node_a.returncode}:\n{self.log()[-3000:]}"
 
     def _on_status(self, msg: DiagnosticArray) -> None:
         for s in msg.status:
@@ -148,14 +165,12 @@ class Harness:
     def publishers(self, prefix: str = ""):
         key = prefix or "a"
         if key not in self.pubs:
-            t = TOPICS_B if prefix else {"color_topic": "/camera/color/image_raw",
-                                         "depth_topic": "/camera/aligned_depth_to_color/image_raw",
-                                         "camera_info_topic": "/camera/color/camera_info", "pose_topic": "/camera/pose"}
+            t = TOPICS_B if prefix else TOPICS_A
             q = qos_profile_sensor_data
-            self.pubs[key] = [self.node.create_publisher(Image, t["color_topic"], q),
-                              self.node.create_publisher(Image, t["depth_topic"], q),
-                              self.node.create_publisher(CameraInfo, t["camera_info_topic"], q),
-                              self.node.create_publisher(PoseStamped, t["pose_topic"], q)]
+            self.pubs[key] = [self.node.create_publisher(Image, t["rgb/image"], q),
+                              self.node.create_publisher(Image, t["depth/image"], q),
+                              self.node.create_publisher(CameraInfo, t["rgb/camera_info"], q),
+                              self.node.create_publisher(PoseStamped, t["pose"], q)]
             wait_for(lambda: all(p.get_subscription_count() > 0 for p in self.pubs[key]), 10, "node subscriptions")
         return self.pubs[key]
 
@@ -321,16 +336,16 @@ def test_start_up_map_missing_camera_info_and_sigint_save(h):
     assert h.save_a.is_file(), "needs the map saved by the previous test"
     loaded = load_map(h.save_a)
     log_b, save_b = h.tmp / "node_b.log", h.tmp / "map_b.pt"
-    params = write_params(h.tmp / "b.yaml", "rg_node_b", **TOPICS_B, pose_source="topic", load_map=str(h.save_a),
-                          features=False,
-                          ground_service="/ground_b", save_on_shutdown=True, save_path=str(save_b), map_width=80,
+    params = write_params(h.tmp / "b.yaml", "rg_node_b", pose_source="topic", load_map=str(h.save_a),
+                          features=False, save_on_shutdown=True, save_path=str(save_b), map_width=80,
                           iters_per_keyframe=2, torch_threads=1, status_period=0.3, camera_info_timeout=1.0,
                           preset="paper")
     # the paper preset with an empty model cache: the node starts, says which command fetches the LVLM,
     # and answers implicit queries with the text reasoner
     models = h.tmp / "no_models"
     models.mkdir(exist_ok=True)
-    node_b = start(["node", "--params", str(params), "--name", "rg_node_b"], log_b, RG_MODELS_DIR=str(models))
+    node_b = start(["node", "--params", str(params), "--name", "rg_node_b", *ros_args(TOPICS_B | {"ground": "/ground_b"})],
+                   log_b, RG_MODELS_DIR=str(models))
     try:
         st = wait_for(lambda: h.st("/rg_node_b") or None, 60, "node B status")
         log = h.log(log_b)
