@@ -6,7 +6,6 @@ with remapping and -p. The `ros2` command is a full ROS 2 install's or ../shared
 """
 from __future__ import annotations
 
-import json
 import os
 import re
 import shutil
@@ -18,7 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
-from test_ros_node import wait_for, write_params
+from test_ros_node import status_values, wait_for, write_params
 
 pytest.importorskip("rg_interfaces.srv", reason="rg_interfaces is not installed: scripts/bootstrap.sh builds it from msg/")
 pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs is not installed: scripts/bootstrap.sh builds it from msg_tf2/")
@@ -34,7 +33,7 @@ from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 
 from conftest import need_rgbd  # noqa: E402
-from rg_core.io.rosbag_write import COLOR_TOPIC, DEPTH_TOPIC, INFO_TOPIC, write_scene_bag  # noqa: E402
+from rg_core.io.rosbag_write import COLOR_TOPIC, write_scene_bag  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PREFIX = Path(sys.prefix)   # the venv: where the set-up installs rg_ros's ROS layout
@@ -97,14 +96,7 @@ class Probe:
         self.thread.start()
 
     def _on_status(self, msg: DiagnosticArray) -> None:
-        for s in msg.status:
-            vals = {}
-            for kv in s.values:
-                try:
-                    vals[kv.key] = json.loads(kv.value)
-                except ValueError:
-                    vals[kv.key] = kv.value
-            self.status[s.name.split(":")[0]] = vals
+        self.status.update(status_values(msg))
 
     def close(self) -> None:
         self.executor.shutdown(timeout_sec=5)
@@ -118,6 +110,7 @@ def probe():
     p = Probe()
     yield p
     p.close()
+    ros2("daemon", "stop", timeout=30)   # every command here says --no-daemon; stop one if anything started it
 
 
 def test_the_package_is_where_ros2_looks():
@@ -193,10 +186,14 @@ def test_ros2_service_call_ground(launched):
 
 def test_ros2_topic_echo_markers_and_amodal_mask(launched):
     """After the call above: the markers are latched (transient local) and the masks stream at mask_rate."""
-    r = ros2("topic", "echo", "--once", "/rg_node/markers", "visualization_msgs/msg/MarkerArray", timeout=60)
+    # the QoS said explicitly: a fresh CLI node that has not discovered the publisher yet would fall
+    # back to sensor_data (volatile) and miss the latched message
+    r = ros2("topic", "echo", "--once", "--no-daemon", "--qos-durability", "transient_local", "--qos-reliability",
+             "reliable", "/rg_node/markers", "visualization_msgs/msg/MarkerArray", timeout=60)
     assert r.returncode == 0 and "markers:" in r.stdout and "frame_id: map" in r.stdout, r.stdout + r.stderr
     assert "type: 1\n" in r.stdout and "type: 9\n" in r.stdout, r.stdout[-3000:]   # CUBE box and TEXT_VIEW_FACING label
-    r = ros2("topic", "echo", "--once", "/rg_node/amodal_mask", "sensor_msgs/msg/Image", "--no-arr", timeout=60)
+    r = ros2("topic", "echo", "--once", "--no-daemon", "/rg_node/amodal_mask", "sensor_msgs/msg/Image", "--no-arr",
+             timeout=60)
     assert r.returncode == 0 and "encoding: mono8" in r.stdout, r.stdout + r.stderr
     assert re.search(r"frame_id: camera_color_optical_frame", r.stdout), r.stdout
 
@@ -222,11 +219,17 @@ def test_rviz_displays_name_what_the_node_publishes(launched, probe):
     cfg = yaml.safe_load((REPO / "config" / "grounding.rviz").read_text())
     displays = [d for d in cfg["Visualization Manager"]["Displays"] if "Topic" in d]
     node = probe.node
-    pubs = dict(node.get_publisher_names_and_types_by_node("rg_node", "/"))
     from test_launch_static import launch_remaps
 
     camera_inputs = set(launch_remaps().values())   # the launch file's defaults (RViz's config is for them)
     assert len(displays) >= 6
+    wanted = {d["Topic"]["Value"] for d in displays} - camera_inputs
+
+    def publishers():   # discovery of the node's endpoints may still be completing
+        names = dict(node.get_publisher_names_and_types_by_node("rg_node", "/"))
+        return names if wanted <= set(names) else None
+
+    pubs = wait_for(publishers, 30, lambda: f"rg_node publishing {sorted(wanted)}")
     for d in displays:
         topic, want = d["Topic"]["Value"], types[d["Class"]]
         if topic in camera_inputs:

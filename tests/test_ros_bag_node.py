@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 import pytest
-from test_ros_node import ros_args, start, stop, wait_for, write_params
+from test_ros_node import ros_args, start, status_values, stop, wait_for, write_params
 
 pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs is not installed: scripts/bootstrap.sh builds it from msg_tf2/")
 pytest.importorskip("rosbags")
@@ -47,8 +47,6 @@ WIDTH, ITERS = 160, 3
 
 class BagHarness:
     def __init__(self, tmp):
-        import json
-
         from rg_core.io.captures import read_scene
 
         self.tmp = tmp
@@ -66,7 +64,6 @@ class BagHarness:
                               train_seconds_max=2.0, status_period=0.3, tf_max_gap=0.12, map_cloud_period=0.0, tf_wait=2.0,
                               mask_rate=0.0)
         self.node_p = start(["node", "--params", str(params), *ros_args(BAG_INPUTS)], self.log)
-        self.json = json
         self.ctx = rclpy.Context()
         rclpy.init(context=self.ctx)
         self.node = rclpy.create_node("rg_bag_probe", context=self.ctx)
@@ -91,17 +88,8 @@ class BagHarness:
         assert self.node_p.poll() is None, f"rg-node exited {self.node_p.returncode}:\n{self.node_log()[-3000:]}"
 
     def _on_status(self, msg):
-        for s in msg.status:
-            vals = {}
-            for kv in s.values:
-                try:
-                    vals[kv.key] = self.json.loads(kv.value)
-                except ValueError:
-                    vals[kv.key] = kv.value
-            vals["_t"], vals["_message"] = time.monotonic(), s.message
-            self.statuses[s.name.split(":")[0]] = vals
-            if s.name.split(":")[0] == "/rg_node":
-                self.status = vals
+        self.statuses.update(status_values(msg))
+        self.status = self.statuses.get("/rg_node", self.status)
 
     def fresh(self, timeout=15.0):
         t = time.monotonic()

@@ -85,6 +85,22 @@ def stop(proc: subprocess.Popen, timeout: float = 30.0) -> int | None:
     return proc.returncode
 
 
+def status_values(msg) -> dict[str, dict]:
+    """A /diagnostics message -> {node name: {key: value}}: values JSON-decoded where they are JSON,
+    plus '_t' (when it arrived, monotonic) and '_message'."""
+    out = {}
+    for s in msg.status:
+        vals = {}
+        for kv in s.values:
+            try:
+                vals[kv.key] = json.loads(kv.value)
+            except ValueError:
+                vals[kv.key] = kv.value
+        vals["_t"], vals["_message"] = time.monotonic(), s.message
+        out[s.name.split(":")[0]] = vals
+    return out
+
+
 def wait_for(cond, timeout: float, what: str):
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -139,15 +155,7 @@ class Harness:
         assert self.node_a.poll() is None, f"rg-node exited {self.node_a.returncode}:\n{self.log()[-3000:]}"
 
     def _on_status(self, msg: DiagnosticArray) -> None:
-        for s in msg.status:
-            vals = {}
-            for kv in s.values:
-                try:
-                    vals[kv.key] = json.loads(kv.value)
-                except ValueError:
-                    vals[kv.key] = kv.value
-            vals["_t"] = time.monotonic()
-            self.status[s.name.split(":")[0]] = vals
+        self.status.update(status_values(msg))
 
     def st(self, name: str = "/rg_node") -> dict:
         return self.status.get(name, {})
