@@ -9,10 +9,9 @@ service becomes /ground. Parameters: config/grounding.yaml (params_file:=...).
 """
 import os
 
-from ament_index_python.packages import get_package_share_directory
+from ament_index_python.packages import PackageNotFoundError, get_package_prefix, get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument
-from launch.conditions import IfCondition
+from launch.actions import DeclareLaunchArgument, LogInfo, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
@@ -23,6 +22,20 @@ REMAPS = {
     "rgb/camera_info": ("camera_info_topic", "/color/camera_info"),
     "pose": ("pose_topic", "/pose"),
 }
+
+
+def rviz(context):
+    """RViz when rviz:=true and rviz2 is installed; without rviz2 (the PyPI wheels have none) say so
+    and run the node alone."""
+    if LaunchConfiguration("rviz").perform(context).lower() not in ("true", "1", "yes"):
+        return []
+    config = LaunchConfiguration("rviz_config").perform(context)
+    try:
+        get_package_prefix("rviz2")
+    except PackageNotFoundError:
+        return [LogInfo(msg=f"rviz2 is not installed: RViz not started (open {config} in it elsewhere; "
+                            "rviz:=false hides this)")]
+    return [Node(package="rviz2", executable="rviz2", name="rviz2", output="screen", arguments=["-d", config])]
 
 
 def generate_launch_description():
@@ -45,6 +58,5 @@ def generate_launch_description():
         # sigterm_timeout: the node saves the map on shutdown when save_on_shutdown is set
         Node(package="rg_ros", executable="rg-node", name="rg_node", output="screen", emulate_tty=True,
              parameters=[LaunchConfiguration("params_file")], remappings=remappings, sigterm_timeout="30"),
-        Node(package="rviz2", executable="rviz2", name="rviz2", output="screen",
-             arguments=["-d", LaunchConfiguration("rviz_config")], condition=IfCondition(LaunchConfiguration("rviz"))),
+        OpaqueFunction(function=rviz),
     ])

@@ -70,14 +70,23 @@ def ros2_until(args: list[str], ok, timeout: float = 120.0) -> subprocess.Comple
             return r
 
 
+def kill_group(proc: subprocess.Popen) -> None:
+    """SIGKILL whatever is left of the process group (a child can outlive a launch that failed)."""
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    if proc.poll() is None:
+        proc.wait(10)
+
+
 def interrupt_group(proc: subprocess.Popen, timeout: float = 60.0) -> int:
     """Ctrl-C as a terminal sends it: SIGINT to the whole process group. Returns the exit code."""
     os.killpg(proc.pid, signal.SIGINT)
     try:
         return proc.wait(timeout)
     except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait(10)
+        kill_group(proc)
         raise AssertionError(f"still running {timeout:.0f} s after SIGINT")
 
 
@@ -120,8 +129,10 @@ def test_the_package_is_where_ros2_looks():
     r = ros2("pkg", "executables", "rg_ros")
     assert r.returncode == 0 and set(r.stdout.split()) >= {"rg_ros", "rg-node", "rg-ground", "rg-replay"}, r.stdout
     share = PREFIX / "share" / "rg_ros"
-    for rel in ("package.xml", "launch/grounding.launch.py", "config/grounding.yaml", "config/grounding.rviz"):
-        assert (share / rel).is_file(), share / rel
+    for rel in ("package.xml", "launch/grounding.launch.py", "config/grounding.yaml", "config/grounding.rviz",
+                "config/realsense.yaml"):
+        assert (share / rel).read_bytes() == (REPO / rel).read_bytes(), \
+            f"{share / rel} differs from the checkout's: run scripts/bootstrap.sh (it installs the ROS layout)"
     r = ros2("launch", "rg_ros", "grounding.launch.py", "--show-args")
     assert r.returncode == 0 and "'camera'" in r.stdout and "'params_file'" in r.stdout, r.stdout + r.stderr
 
@@ -160,9 +171,7 @@ def launched(tmp_path_factory, probe):
         h["status"] = st
         yield h
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(10)
+        kill_group(proc)
 
 
 def test_launch_maps_the_replayed_bag(launched):
@@ -257,6 +266,32 @@ def test_sigint_to_the_launch_group_exits_cleanly(launched):
         text[-3000:]
 
 
+def test_plain_launch_without_rviz2(tmp_path, probe):
+    """The user's command as typed, `ros2 launch rg_ros grounding.launch.py` (rviz defaults to true):
+    where rviz2 is not installed the node still starts, the log says RViz was not started."""
+    try:
+        from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+
+        get_package_prefix("rviz2")
+        pytest.skip("rviz2 is installed here: the launch would open RViz")
+    except PackageNotFoundError:
+        pass
+    log = tmp_path / "plain.log"
+    params = write_params(tmp_path / "p.yaml", "rg_node", features=False, status_period=0.3)
+    t0 = time.monotonic()
+    proc = subprocess.Popen([ROS2, "launch", "rg_ros", "grounding.launch.py", f"params_file:={params}"],
+                            env=ros_env(), stdout=log.open("w"), stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        wait_for(lambda: "/rg_node" in probe.status and probe.status["/rg_node"].get("_t", 0) > t0
+                 or proc.poll() is not None, 120, "rg_node's status")
+        assert proc.poll() is None, log.read_text()[-3000:]
+        assert interrupt_group(proc) == 0, log.read_text()[-3000:]
+        text = log.read_text(errors="replace")
+        assert "rviz2 is not installed: RViz not started" in text and "Traceback" not in text, text[-3000:]
+    finally:
+        kill_group(proc)
+
+
 def test_ros2_run_with_remapping_and_parameters(tmp_path, probe):
     """`ros2 run rg_ros rg-node --ros-args -r ground:=/my_ground -p map_frame:=odom`: the service is
     /my_ground and the answer's frame is odom; Ctrl-C ends it (and ros2 run) with exit 0, no traceback."""
@@ -279,9 +314,7 @@ def test_ros2_run_with_remapping_and_parameters(tmp_path, probe):
         text = log.read_text(errors="replace")
         assert code == 0 and "Traceback" not in text and "shutting down (SIGINT)" in text, text[-3000:]
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(10)
+        kill_group(proc)
 
 
 def test_sigterm_saves_the_map_and_exits_cleanly(tmp_path, probe):
