@@ -292,8 +292,8 @@ class GroundingNode(Node):
         unknown = sorted(n for n in self._parameter_overrides if ours(n) and n not in PARAM_FIELDS
                          and not self.has_parameter(n))
         if unknown:
-            known = (sorted(n for n in self._parameters if n.startswith("qos_overrides.")) if qos_only
-                     else list(PARAM_NAMES))
+            known = (sorted("qos_overrides." + n for n in self.get_parameters_by_prefix("qos_overrides"))
+                     if qos_only else list(PARAM_NAMES))
             raise ValueError(f"unknown parameter '{unknown[0]}'" + (f" (and {len(unknown) - 1} more)" if len(unknown) > 1
                              else "") + f"; known: {', '.join(known)}")
 
