@@ -35,6 +35,7 @@ def _positive(text: str) -> int:
 
 
 def cmd_synth(args, cfg) -> dict:
+    from .io.images import SceneError
     from .synth.generator import default_objects_dir, generate_scene
 
     s = cfg.synth

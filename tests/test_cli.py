@@ -20,6 +20,12 @@ def test_synth_json(tmp_path):
     assert (tmp_path / "s" / "images" / "0002.png").is_file()
 
 
+def test_synth_missing_objects_dir_is_a_clear_error(tmp_path):
+    r = run_rg("synth", str(tmp_path / "s"), "--objects-dir", str(tmp_path / "missing"), "--json")
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert "--objects-dir does not exist" in json.loads(r.stdout)["error"]
+
+
 def test_demo_writes_contact_sheet(tmp_path):
     import cv2
 
