@@ -15,7 +15,7 @@ from launch.actions import DeclareLaunchArgument, LogInfo, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-# node input -> (launch argument, default under `camera`); rg_ros.node.INPUTS holds the same defaults
+# node input -> (launch argument, default under `camera`); rg_ros.params.INPUTS holds the same defaults
 REMAPS = {
     "rgb/image": ("color_topic", "/color/image_raw"),
     "depth/image": ("depth_topic", "/aligned_depth_to_color/image_raw"),

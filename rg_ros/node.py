@@ -1,27 +1,21 @@
 """The ROS 2 node: subscriptions -> approximate time sync -> MapWorker; /ground, ~/save_map, ~/reset;
 masks, clouds, markers and diagnostics out. Thin: message conversion and calls into rg_core only.
 
-Every parameter is declared from `NodeParams` (the one place; config/grounding.yaml lists them all).
+Parameters and names: rg_ros/params.py; running it (signals, executor): rg_ros/run.py.
 """
 from __future__ import annotations
 
 import dataclasses
 import json
-import signal
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
@@ -33,107 +27,13 @@ from rg_core.grounding.result import GroundingResult
 
 from . import convert as cv
 from .markers import result_markers
+from .params import DIAGNOSTICS_TOPIC, GROUND_SERVICE, NODE_NAME, NodeParams, check_unknown_params, declare_params
 from .pointcloud import to_pointcloud2
 from .sync import ApproximateTimeSync, SyncedSet
 from .worker import Frame, MapWorker, WorkerConfig
 
-NODE_NAME = "rg_node"
 # qos_overrides./<topic>.<publisher|subscription>.{history,depth,reliability} parameters for every topic
 _QOS_OVERRIDES = QoSOverridingOptions.with_default_policies()
-
-
-def _p(default, doc: str, lo: float | None = None, hi: float | None = None, choices: tuple[str, ...] = ()):
-    """A node parameter: default (its type is the parameter's type), description, inclusive range or choices."""
-    return field(default=default, metadata={"doc": doc, "range": None if lo is None else (lo, hi),
-                                            "choices": choices})
-
-
-# Relative names the node subscribes and serves (set by remapping, as image_pipeline's nodes do) and
-# the camera topics the launch file remaps them to by default (a realsense2_camera-style driver in
-# namespace /camera). rg-replay publishes on these defaults.
-INPUTS = {"rgb/image": "/camera/color/image_raw", "depth/image": "/camera/aligned_depth_to_color/image_raw",
-          "rgb/camera_info": "/camera/color/camera_info", "pose": "/camera/pose", "odom": "/odom"}
-GROUND_SERVICE = "ground"
-DIAGNOSTICS_TOPIC = "/diagnostics"   # diagnostic_updater's absolute name (remappable like any other)
-TRANSPORTS = {"color_transport": ("raw", "compressed"), "depth_transport": ("raw", "compressedDepth")}
-
-
-@dataclass
-class NodeParams:
-    """The node's ROS parameters, the one place they are declared from: name, default (the type
-    follows it), description and range (shown by `ros2 param describe`). All are read once at
-    start-up, so all are read-only."""
-
-    color_transport: str = _p("raw", "image_transport of rgb/image: raw (sensor_msgs/Image rgb8, bgr8, rgba8, "
-                              "bgra8, mono8) or compressed (CompressedImage jpeg/png on rgb/image/compressed)",
-                              choices=TRANSPORTS["color_transport"])
-    depth_transport: str = _p("raw", "image_transport of depth/image (registered to the colour image): raw "
-                              "(16UC1 mm or 32FC1 m) or compressedDepth (on depth/image/compressedDepth)",
-                              choices=TRANSPORTS["depth_transport"])
-    pose_source: str = _p("tf", "tf: look up map_frame <- the colour image's header.frame_id on /tf and "
-                          "/tf_static at its stamp; topic: geometry_msgs/PoseStamped on 'pose'; odometry: "
-                          "nav_msgs/Odometry on 'odom', chained with TF to the image's frame",
-                          choices=("tf", "topic", "odometry"))
-    map_frame: str = _p("map", "frame of poses, clouds and markers")
-    tf_wait: float = _p(0.5, "seconds a frame waits for its transform; then it is dropped and counted "
-                        "(diagnostics 'tf')", 0.0, 60.0)
-    tf_cache_time: float = _p(10.0, "seconds of dynamic TF history kept", 0.1, 3600.0)
-    tf_max_gap: float = _p(0.5, "a dynamic TF link is not interpolated across a longer gap between samples "
-                           "(s); 0 = any gap, as tf2", 0.0, 3600.0)
-    tf_extrapolation: float = _p(0.0, "seconds past a link's newest (or before its oldest) sample where its "
-                                 "nearest sample is used (tf2: 0)", 0.0, 60.0)
-    sync_queue_size: int = _p(10, "messages per input kept by the approximate time synchroniser", 1, 1000)
-    sync_slop: float = _p(0.05, "largest stamp spread (s) of one synchronised colour/depth/info set", 0.0, 10.0)
-    frame_queue_size: int = _p(4, "frames waiting for the mapper; when full the oldest is dropped and counted",
-                               1, 100000)
-    rg_config: str = _p("", "rg YAML configuration (map and field sections); empty = defaults")
-    map_width: int = _p(0, "mapper working width in pixels (0 = rg_config's map.width)", 0, 8192)
-    iters_per_keyframe: int = _p(0, "optimisation iterations per keyframe (0 = rg_config's)", 0, 100000)
-    max_gaussians: int = _p(0, "bound on the map's Gaussians (0 = rg_config's)", 0, 1_000_000_000)
-    load_map: str = _p("", "map file loaded at start-up (empty = start with an empty map)")
-    save_path: str = _p("rg_map.pt", "where ~/save_map (and the save on shutdown) writes the map")
-    save_on_shutdown: bool = _p(False, "save the map to save_path when the node stops (SIGINT, SIGTERM)")
-    features: bool = _p(True, "keyframe supervision and feature-field training while the mapper is idle")
-    mask_generator: str = _p("rgbd", "mask generator backend of the supervision")
-    embedder: str = _p("conse", "image-text embedder backend of the supervision")
-    preset: str = _p("", "named models (rg models): offline, paper, paper_cpu; overrides mask_generator, "
-                     "embedder and the reasoner (empty = those parameters)")
-    train_slice: float = _p(0.5, "seconds of field training per idle slice", 0.01, 600.0)
-    train_seconds_max: float = _p(30.0, "field training seconds after each supervision change (0 = whenever "
-                                  "idle)", 0.0, 1e6)
-    refine_iters: int = _p(0, "map refinement iterations per idle slice (0 = off)", 0, 100000)
-    torch_threads: int = _p(0, "torch intra-op threads (0 = torch's default)", 0, 1024)
-    max_results: int = _p(1, "objects returned when a request says max_results = 0", 1, 1000)
-    max_query_chars: int = _p(1000, "longer queries are refused", 1, 1_000_000)
-    ground_timeout: float = _p(30.0, "seconds a grounding call waits for the map lock", 0.1, 3600.0)
-    mask_rate: float = _p(2.0, "Hz of ~/amodal_mask and ~/visible_mask for the last grounded targets (0 = off)",
-                          0.0, 100.0)
-    map_cloud_period: float = _p(5.0, "seconds between ~/map_cloud messages, sent only while someone "
-                                 "subscribes (0 = off)", 0.0, 3600.0)
-    map_cloud_max_points: int = _p(50000, "Gaussians per ~/map_cloud message (evenly subsampled)", 1, 100_000_000)
-    status_period: float = _p(1.0, "seconds between /diagnostics messages", 0.05, 3600.0)
-    camera_info_timeout: float = _p(5.0, "warn when images arrive but no CameraInfo came for this long (s)",
-                                    0.0, 3600.0)
-    marker_alpha: float = _p(0.25, "opacity of the grounded boxes (CUBE markers)", 0.0, 1.0)
-
-
-PARAM_FIELDS = {f.name: f for f in dataclasses.fields(NodeParams)}
-PARAM_NAMES = tuple(PARAM_FIELDS)
-POSE_SOURCES = PARAM_FIELDS["pose_source"].metadata["choices"]
-
-
-def descriptor(name: str) -> ParameterDescriptor:
-    """The ParameterDescriptor of a NodeParams field (description, range or choices, read-only)."""
-    f = PARAM_FIELDS[name]
-    d = ParameterDescriptor(name=name, description=f.metadata["doc"], read_only=True)
-    rng, choices = f.metadata["range"], f.metadata["choices"]
-    if rng is not None and isinstance(f.default, float):
-        d.floating_point_range = [FloatingPointRange(from_value=float(rng[0]), to_value=float(rng[1]), step=0.0)]
-    elif rng is not None:
-        d.integer_range = [IntegerRange(from_value=int(rng[0]), to_value=int(rng[1]), step=1)]
-    if choices:
-        d.additional_constraints = "one of: " + ", ".join(choices)
-    return d
 
 
 def _final(exc: TFError) -> bool:
@@ -146,21 +46,44 @@ def _final(exc: TFError) -> bool:
 
 class GroundingNode(Node):
     def __init__(self, node_name: str = NODE_NAME, **kwargs):
-        """Parameters come from rcl (--ros-args --params-file / -p, or `parameter_overrides`); a name
-        NodeParams does not declare, a wrong type, a value out of range or not among the choices is a
-        ValueError naming the parameter (rg-node prints it and exits 2)."""
+        """Parameters come from rcl (--ros-args --params-file / -p, or `parameter_overrides`); a bad
+        one is a ValueError naming it (rg-node prints it and exits 2). Names are relative (remapping)."""
         super().__init__(node_name, **kwargs)
-        self.p = self._declare_params()
-        p = self.p
-        log = self.get_logger()
+        self.p = p = declare_params(self)
         if p.torch_threads > 0:
             import torch
 
             torch.set_num_threads(p.torch_threads)
+        self.worker = self._make_worker(p)
+        self._state_lock = threading.Lock()
+        self._camera: tuple | None = None   # (K, width, height, cam_to_world, frame_id, stamp) of the latest frame
+        self._last_result: GroundingResult | None = None
+        self._last_info_time: float | None = None
+        self._last_image_time: float | None = None
+        self._first_image_time: float | None = None
+        self._warned: dict[str, float] = {}
+        self.input_errors: dict[str, int] = {}
+        self._make_inputs(p)
+        self._make_outputs(p)
+        check_unknown_params(self, qos_only=True)   # qos_overrides.* exist once the entities do
+        self.create_timer(max(p.status_period, 0.05), self._on_status, callback_group=MutuallyExclusiveCallbackGroup())
+        if p.mask_rate > 0:
+            self.create_timer(1.0 / p.mask_rate, self._on_masks, callback_group=MutuallyExclusiveCallbackGroup())
+        if p.map_cloud_period > 0:
+            self.create_timer(p.map_cloud_period, self._on_map_cloud, callback_group=MutuallyExclusiveCallbackGroup())
+        self.worker.start()
+        pose_from = {"tf": f"TF {p.map_frame} <- image frame", "topic": f"PoseStamped {self.topics.get('pose')}",
+                     "odometry": f"Odometry {self.topics.get('pose')}"}[p.pose_source]
+        self.get_logger().info(
+            f"listening: colour {self.topics['color']}, depth {self.topics['depth']}, info {self.topics['info']}, "
+            f"pose from {pose_from}; service {self.resolve_service_name(GROUND_SERVICE)}; "
+            f"features {'on' if p.features else 'off'}")
 
-        # -------------------------------------------------------------- the library
+    def _make_worker(self, p: NodeParams) -> MapWorker:
+        """The library side: rg config with the node's overrides, the start-up map, the models."""
         from rg_core.config import load_config
 
+        log = self.get_logger()
         cfg = load_config(p.rg_config or None)
         over_map = {k: v for k, v in (("width", p.map_width), ("iters_per_keyframe", p.iters_per_keyframe),
                                       ("max_gaussians", p.max_gaussians)) if v > 0}
@@ -185,19 +108,11 @@ class GroundingNode(Node):
                 log.error(f"{exc}; implicit queries use the text reasoner")
             wcfg.mask_generator = wcfg.embedder = f"preset {p.preset}"
             loader = lambda: make_perception(p.preset, cfg.models)  # noqa: E731 - errors name the fetch command
-        self.worker = MapWorker(cfg, wcfg, mapper, logger=_RosLogAdapter(log), perception_loader=loader)
+        return MapWorker(cfg, wcfg, mapper, logger=_RosLogAdapter(log), perception_loader=loader)
 
-        # -------------------------------------------------------------- state
-        self._state_lock = threading.Lock()
-        self._camera: tuple | None = None   # (K, width, height, cam_to_world, frame_id, stamp) of the latest frame
-        self._last_result: GroundingResult | None = None
-        self._last_info_time: float | None = None
-        self._last_image_time: float | None = None
-        self._first_image_time: float | None = None
-        self._warned: dict[str, float] = {}
-        self.input_errors: dict[str, int] = {}
-
-        # -------------------------------------------------------------- interfaces
+    def _make_inputs(self, p: NodeParams) -> None:
+        """Subscriptions (relative names resolved through the remappings; a compressed transport
+        subscribes to <base>/<transport> as image_transport does), the synchroniser and TF."""
         self.tf = TFBuffer(p.tf_cache_time, p.tf_extrapolation, p.tf_max_gap)
         self._tf_pending: list[tuple[float, Frame, object]] = []   # (deadline, frame without pose, pose message)
         self._tf_lock = threading.Lock()   # the pending frames: touched by the sensor and the TF callbacks
@@ -205,8 +120,6 @@ class GroundingNode(Node):
         roles = ("color", "depth", "info") + (("pose",) if p.pose_source != "tf" else ())
         self.sync = ApproximateTimeSync(roles, p.sync_queue_size, p.sync_slop, callback=self._on_synced)
         self.msgs_in = dict.fromkeys(roles, 0)   # messages taken per input (diagnostics 'messages')
-        # relative names, resolved through the remappings; a compressed transport subscribes to
-        # <base>/<transport> as image_transport does
         self.topics = {"color": self._transport_topic("rgb/image", p.color_transport),
                        "depth": self._transport_topic("depth/image", p.depth_transport),
                        "info": self.resolve_topic_name("rgb/camera_info")}
@@ -226,6 +139,9 @@ class GroundingNode(Node):
         # per topic and executor turn, /tf fell behind the images on a loaded CPU and frames timed out)
         self._subscribe_tf(MutuallyExclusiveCallbackGroup())
 
+    def _make_outputs(self, p: NodeParams) -> None:
+        """Services and publishers; the last answer (cloud, markers) is latched, so RViz or `ros2
+        topic echo` started later still gets it."""
         from rg_interfaces.srv import Ground
 
         self.create_service(Ground, GROUND_SERVICE, self._on_ground, callback_group=MutuallyExclusiveCallbackGroup())
@@ -236,7 +152,6 @@ class GroundingNode(Node):
         def pub(kind, name, qos):
             return self.create_publisher(kind, name, qos, qos_overriding_options=_QOS_OVERRIDES)
 
-        # the answer of the last /ground call is latched: RViz or `ros2 topic echo` started later still gets it
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.pub_amodal = pub(Image, "~/amodal_mask", 1)
         self.pub_visible = pub(Image, "~/visible_mask", 1)
@@ -244,58 +159,8 @@ class GroundingNode(Node):
         self.pub_markers = pub(MarkerArray, "~/markers", latched)
         self.pub_map_cloud = pub(PointCloud2, "~/map_cloud", 1)
         self.pub_status = pub(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
-        self._check_unknown_params(qos_only=True)   # qos_overrides.* exist once the entities do
-
-        self.create_timer(max(p.status_period, 0.05), self._on_status, callback_group=MutuallyExclusiveCallbackGroup())
-        if p.mask_rate > 0:
-            self.create_timer(1.0 / p.mask_rate, self._on_masks, callback_group=MutuallyExclusiveCallbackGroup())
-        if p.map_cloud_period > 0:
-            self.create_timer(p.map_cloud_period, self._on_map_cloud, callback_group=MutuallyExclusiveCallbackGroup())
-        self.worker.start()
-        pose_from = {"tf": f"TF {p.map_frame} <- image frame", "topic": f"PoseStamped {self.topics.get('pose')}",
-                     "odometry": f"Odometry {self.topics.get('pose')}"}[p.pose_source]
-        log.info(f"listening: colour {self.topics['color']}, depth {self.topics['depth']}, info {self.topics['info']}, "
-                 f"pose from {pose_from}; service {self.resolve_service_name(GROUND_SERVICE)}; "
-                 f"features {'on' if p.features else 'off'}")
 
     # ------------------------------------------------------------------------------ parameters
-
-    def _declare_params(self) -> NodeParams:
-        """Declare every NodeParams field with its descriptor; return the values (see __init__)."""
-        # rclpy keeps this node's overrides (params files, -p, parameter_overrides) in _parameter_overrides.
-        # YAML `1` for a float parameter is an int there; rcl would refuse it as the wrong type.
-        overrides = self._parameter_overrides
-        for name, prm in list(overrides.items()):
-            f = PARAM_FIELDS.get(name)
-            if f is not None and isinstance(f.default, float) and prm.type_ == Parameter.Type.INTEGER:
-                overrides[name] = Parameter(name, value=float(prm.value))
-        self._check_unknown_params(qos_only=False)
-        values = {}
-        for name, f in PARAM_FIELDS.items():
-            try:
-                values[name] = self.declare_parameter(name, f.default, descriptor(name)).value
-            except InvalidParameterTypeException as exc:
-                got = overrides[name].value if name in overrides else None
-                raise ValueError(f"parameter '{name}' must be {type(f.default).__name__}, got {got!r}") from exc
-            except InvalidParameterValueException as exc:
-                raise ValueError(f"parameter '{name}': {exc}") from exc
-            choices = f.metadata["choices"]
-            if choices and values[name] not in choices:
-                raise ValueError(f"parameter '{name}': '{values[name]}' is not one of {', '.join(choices)}")
-        return NodeParams(**values)
-
-    def _check_unknown_params(self, qos_only: bool) -> None:
-        """An override naming no parameter of this node is an error (rclpy would ignore it silently)."""
-        def ours(n):
-            return n.startswith("qos_overrides.") if qos_only else not n.startswith("qos_overrides.")
-
-        unknown = sorted(n for n in self._parameter_overrides if ours(n) and n not in PARAM_FIELDS
-                         and not self.has_parameter(n))
-        if unknown:
-            known = (sorted("qos_overrides." + n for n in self.get_parameters_by_prefix("qos_overrides"))
-                     if qos_only else list(PARAM_NAMES))
-            raise ValueError(f"unknown parameter '{unknown[0]}'" + (f" (and {len(unknown) - 1} more)" if len(unknown) > 1
-                             else "") + f"; known: {', '.join(known)}")
 
     def _transport_topic(self, base: str, transport: str) -> str:
         name = self.resolve_topic_name(base)
@@ -608,50 +473,3 @@ class _RosLogAdapter:
         self._l.error(self._fmt(msg, args))
 
 
-class StopSignals:
-    """SIGINT / SIGTERM set an event instead of raising: a terminal's Ctrl-C, `ros2 launch` (which
-    also forwards SIGINT to the process group it already reached, so a second signal comes during
-    shutdown) and systemd's SIGTERM all end in one orderly stop. Install before rclpy.init with
-    signal_handler_options=NO, so rclpy does not shut the context down under the node."""
-
-    def __init__(self):
-        self.event = threading.Event()
-        self.signum: int | None = None
-        for s in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(s, self._on_signal)
-
-    def _on_signal(self, signum, _frame) -> None:
-        if self.signum is None:
-            self.signum = signum
-        self.event.set()
-
-
-def spin(node: GroundingNode, stop: StopSignals) -> int:
-    """Spin `node` with a multi-threaded executor until a stop signal (or the context ends); then stop
-    the worker after its current step, save the map if configured, and return exit code 0."""
-    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
-
-    executor = MultiThreadedExecutor(num_threads=6, context=node.context)
-    executor.add_node(node)
-
-    def run():
-        try:
-            executor.spin()
-        except ExternalShutdownException:
-            pass
-        finally:
-            stop.event.set()
-
-    thread = threading.Thread(target=run, name="rg-executor", daemon=True)
-    thread.start()
-    while not stop.event.wait(0.5):
-        pass
-    why = signal.Signals(stop.signum).name if stop.signum is not None else "context shut down"
-    node.get_logger().info(f"shutting down ({why})")
-    node.shutdown()
-    executor.shutdown(timeout_sec=5)
-    thread.join(5)
-    context = node.context
-    node.destroy_node()
-    rclpy.try_shutdown(context=context)
-    return 0

@@ -1,6 +1,6 @@
-"""Console scripts (setup.py entry_points), the pip-install equivalents of `ros2 launch/run/service/bag`:
+"""Console scripts (setup.py entry_points; `ros2 run rg_ros NAME` runs the same through lib/rg_ros/):
 
-  rg-node   --params config/grounding.yaml [--name rg_node] [--ros-args ...]
+  rg-node   [--params FILE] [--name rg_node] [--ros-args -r rgb/image:=... -p name:=value ...]
   rg-ground "query" [--mode auto|explicit|implicit] [--max-results N] [--timeout S] [--service /ground]
   rg-replay SCENE --rate HZ [--loop] [--count N] [--split train|test|all]
   rg-replay BAG [--rate FACTOR] [--loop] [--topics T ...]   (.mcap, .db3 or a rosbag2 folder)
@@ -12,9 +12,6 @@ import json
 import sys
 import time
 from pathlib import Path
-
-from .node import GROUND_SERVICE, INPUTS, NodeParams
-from .publish_util import replay_qos, flush_publishers, report_unmatched, wait_for_subscribers
 
 
 def _split_ros_args(argv: list[str] | None) -> tuple[list[str], list[str]]:
@@ -31,7 +28,7 @@ def _split_ros_args(argv: list[str] | None) -> tuple[list[str], list[str]]:
 def node_main(argv: list[str] | None = None) -> int:
     """rg-node = `ros2 run rg_ros rg-node`: names and parameters come from --ros-args (-r, -p,
     --params-file); --params FILE is short for --ros-args --params-file FILE."""
-    from .node import StopSignals
+    from .run import StopSignals
 
     stop = StopSignals()   # first: a Ctrl-C while the models load still ends cleanly
     ours, ros_argv = _split_ros_args(argv)
@@ -50,7 +47,8 @@ def node_main(argv: list[str] | None = None) -> int:
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
-    from .node import GroundingNode, spin
+    from .node import GroundingNode
+    from .run import spin
 
     try:
         rclpy.init(args=ros_argv, signal_handler_options=SignalHandlerOptions.NO)
@@ -87,6 +85,8 @@ def response_to_json(res) -> dict:
 
 
 def ground_main(argv: list[str] | None = None) -> int:
+    from .params import GROUND_SERVICE
+
     ours, ros_argv = _split_ros_args(argv)
     ap = argparse.ArgumentParser(prog="rg-ground", description="Call the Ground service; print the response as JSON")
     ap.add_argument("query")
@@ -126,34 +126,10 @@ def ground_main(argv: list[str] | None = None) -> int:
 
 # ---------------------------------------------------------------------------------- rg-replay
 
-def frame_messages(frame, stamp, frame_id: str, map_frame: str):
-    """One scene frame -> (Image rgb8, Image 16UC1 mm, CameraInfo, PoseStamped), all with `stamp`."""
-    import numpy as np
-    from geometry_msgs.msg import PoseStamped
-    from sensor_msgs.msg import CameraInfo
-
-    from . import convert as cv
-
-    rgb = frame.load_rgb()
-    depth = frame.load_depth()
-    mm = np.where(np.isfinite(depth) & (depth > 0), np.round(depth * 1000.0), 0).clip(0, 65535).astype(np.uint16)
-    hdr = cv.header(frame_id, stamp)
-    color = cv.to_image(rgb, "rgb8")
-    color.header = hdr
-    dimg = cv.to_image(mm, "16UC1")
-    dimg.header = hdr
-    K = np.asarray(frame.intrinsics.K, np.float64)
-    h, w = rgb.shape[:2]
-    info = CameraInfo(header=hdr, width=w, height=h, distortion_model="plumb_bob", d=[0.0] * 5,
-                      k=K.reshape(-1).tolist(), r=np.eye(3).reshape(-1).tolist(),
-                      p=np.hstack([K, np.zeros((3, 1))]).reshape(-1).tolist())
-    pose = PoseStamped(header=cv.header(map_frame, stamp), pose=cv.matrix_to_pose(frame.cam_to_world))
-    return color, dimg, info, pose
-
-
 def replay_main(argv: list[str] | None = None) -> int:
+    from .params import INPUTS, NodeParams
+
     ours, ros_argv = _split_ros_args(argv)
-    d = NodeParams()
     ap = argparse.ArgumentParser(prog="rg-replay", description="Publish a scene's frames like a bag (rgb8, 16UC1 "
                                  "depth, CameraInfo, PoseStamped and /tf map -> optical frame, one stamp per frame), "
                                  "or play a ROS 2 bag on its recorded topics with its recorded stamps")
@@ -168,7 +144,7 @@ def replay_main(argv: list[str] | None = None) -> int:
                                                               "publishing (then publish anyway, naming the topics without)")
     ap.add_argument("--min-subscribers", type=int, default=1, help="subscriptions every topic waits for (default 1)")
     ap.add_argument("--frame-id", default="camera_color_optical_frame")
-    ap.add_argument("--map-frame", default=d.map_frame)
+    ap.add_argument("--map-frame", default=NodeParams().map_frame)
     ap.add_argument("--color-topic", default=INPUTS["rgb/image"])
     ap.add_argument("--depth-topic", default=INPUTS["depth/image"])
     ap.add_argument("--camera-info-topic", default=INPUTS["rgb/camera_info"])
@@ -176,84 +152,11 @@ def replay_main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(ours)
     if args.rate is not None and not args.rate > 0:
         ap.error("--rate must be > 0")
-    from rg_core.io.captures import read_scene
-    from rg_core.io.images import SceneError
     from rg_core.io.rosbag import is_bag
 
-    if is_bag(args.scene):
-        from .bag_replay import replay_bag
+    from .replay import replay_bag, replay_scene
 
-        return replay_bag(args, ros_argv)
-    args.rate = args.rate or 2.0
-
-    try:
-        scene = read_scene(args.scene)
-    except SceneError as exc:
-        print(f"rg-replay: {exc}", file=sys.stderr)
-        return 2
-    frames = {"train": scene.train, "test": scene.test, "all": sorted(scene.train + scene.test,
-                                                                         key=lambda f: f.stamp)}[args.split]
-    if not frames:
-        print(f"rg-replay: {args.scene} has no {args.split} frames", file=sys.stderr)
-        return 2
-    import rclpy
-    from geometry_msgs.msg import PoseStamped
-    from sensor_msgs.msg import CameraInfo, Image
-
-    rclpy.init(args=ros_argv)
-    node = rclpy.create_node("rg_replay")
-    qos = replay_qos()
-    pubs = [node.create_publisher(Image, args.color_topic, qos), node.create_publisher(Image, args.depth_topic, qos),
-            node.create_publisher(CameraInfo, args.camera_info_topic, qos),
-            node.create_publisher(PoseStamped, args.pose_topic, qos)]
-    tf_pub = _tf_publisher(node)   # the same pose on /tf (map -> optical frame) for pose_source tf
-    log = node.get_logger()
-    sent = 0
-    try:
-        report_unmatched(log, wait_for_subscribers(pubs + ([tf_pub] if tf_pub else []), args.wait,
-                                                   minimum=args.min_subscribers), args.wait, args.min_subscribers)
-        period = 1.0 / args.rate
-        next_t = time.monotonic()
-        while True:
-            for f in frames:
-                msgs = frame_messages(f, node.get_clock().now().to_msg(), args.frame_id, args.map_frame)
-                for pub, msg in zip(pubs, msgs):
-                    pub.publish(msg)
-                if tf_pub is not None:
-                    tf_pub.publish(_pose_to_tf(msgs[3], args.frame_id))
-                sent += 1
-                if args.count and sent >= args.count:
-                    raise StopIteration
-                next_t += period
-                time.sleep(max(0.0, next_t - time.monotonic()))
-            if not args.loop:
-                break
-    except (StopIteration, KeyboardInterrupt):
-        pass
-    finally:
-        log.info(f"published {sent} frames from {args.scene}")
-        flush_publishers(pubs + ([tf_pub] if tf_pub is not None else []))
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
-
-
-def _tf_publisher(node):
-    try:
-        from tf2_msgs.msg import TFMessage
-    except ImportError:
-        return None
-    return node.create_publisher(TFMessage, "/tf", replay_qos())
-
-
-def _pose_to_tf(pose, child: str):
-    """PoseStamped (of `child` in the pose's frame) -> TFMessage with one TransformStamped."""
-    from geometry_msgs.msg import Transform, TransformStamped, Vector3
-    from tf2_msgs.msg import TFMessage
-
-    p = pose.pose.position
-    tr = Transform(translation=Vector3(x=p.x, y=p.y, z=p.z), rotation=pose.pose.orientation)
-    return TFMessage(transforms=[TransformStamped(header=pose.header, child_frame_id=child, transform=tr)])
+    return replay_bag(args, ros_argv) if is_bag(args.scene) else replay_scene(args, ros_argv)
 
 
 if __name__ == "__main__":

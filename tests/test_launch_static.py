@@ -56,8 +56,8 @@ def launch_remaps(camera: str = "/camera") -> dict[str, str]:
 
 
 def test_launch_remaps_match_the_node_defaults():
-    """The launch file's camera topics are rg_ros.node.INPUTS (where rg-replay publishes)."""
-    from rg_ros.node import INPUTS
+    """The launch file's camera topics are rg_ros.params.INPUTS (where rg-replay publishes)."""
+    from rg_ros.params import INPUTS
 
     assert launch_remaps() == INPUTS
 
@@ -86,7 +86,7 @@ def test_console_scripts_resolve():
 
 def test_parameter_file_matches_declared_parameters():
     """config/grounding.yaml holds every declared parameter with its default and type, and nothing else."""
-    from rg_ros.node import NODE_NAME, PARAM_FIELDS, NodeParams, descriptor
+    from rg_ros.params import NODE_NAME, PARAM_FIELDS, NodeParams, descriptor
 
     data = yaml.safe_load(PARAMS.read_text())
     assert list(data) == [NODE_NAME] and any(n.get("name") == NODE_NAME for n in launch_nodes())
@@ -120,7 +120,7 @@ def test_data_files_ship_launch_and_configs():
 
 
 def test_rviz_config_shows_the_node_topics():
-    from rg_ros.node import NODE_NAME
+    from rg_ros.params import NODE_NAME
 
     cfg = yaml.safe_load(RVIZ.read_text())
     displays = cfg["Visualization Manager"]["Displays"]

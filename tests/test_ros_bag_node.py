@@ -35,7 +35,7 @@ from tf2_msgs.msg import TFMessage  # noqa: E402
 from conftest import need_rgbd  # noqa: E402
 from rg_core.io.rosbag_write import COLOR_TOPIC, DEPTH_TOPIC, INFO_TOPIC, OPTICAL_FRAME, write_scene_bag  # noqa: E402
 from rg_ros import convert as cv  # noqa: E402
-from rg_ros.publish_util import replay_qos  # noqa: E402
+from rg_ros.replay import replay_qos  # noqa: E402
 
 N = 20
 # the node's inputs -> the bag's topics (image_transport: the base names of the compressed streams)

@@ -39,8 +39,8 @@ from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from rg_ros import convert as cv  # noqa: E402
-from rg_ros.node import INPUTS  # noqa: E402
-from rg_ros.tools import frame_messages  # noqa: E402
+from rg_ros.params import INPUTS  # noqa: E402
+from rg_ros.replay import frame_messages  # noqa: E402
 
 OPTICAL = "camera_color_optical_frame"
 TOPICS_A = dict(INPUTS)   # the launch file's remappings, where rg-replay publishes
