@@ -25,7 +25,7 @@ from rg_core.config import load_config
 from rg_core.io.captures import read_scene
 from rg_core.io.rosbag import read_bag
 from rg_core.io.rosbag_write import write_scene_bag
-from rg_core.map.run import map_scene
+from rg_core.eval.mapping import map_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 

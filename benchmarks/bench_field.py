@@ -24,7 +24,7 @@ from rg_core.config import FieldConfig, MapConfig, SynthConfig  # noqa: E402
 from rg_core.field import FeatureField  # noqa: E402
 from rg_core.field.oracle import RandomNameEmbedding, oracle_checks, oracle_supervision  # noqa: E402
 from rg_core.io.captures import read_scene  # noqa: E402
-from rg_core.map.run import map_scene  # noqa: E402
+from rg_core.eval.mapping import map_scene  # noqa: E402
 from rg_core.synth.generator import default_objects_dir, generate_scene  # noqa: E402
 from rg_core.util import peak_rss_mb  # noqa: E402
 

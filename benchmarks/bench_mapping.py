@@ -18,7 +18,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from rg_core.config import MapConfig, SynthConfig  # noqa: E402
 from rg_core.io.captures import read_scene  # noqa: E402
-from rg_core.map.run import map_scene, stream_frames  # noqa: E402
+from rg_core.eval.mapping import map_scene  # noqa: E402
+from rg_core.map.run import stream_frames  # noqa: E402
 from rg_core.synth.generator import default_objects_dir, generate_scene  # noqa: E402
 
 

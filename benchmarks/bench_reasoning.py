@@ -141,7 +141,8 @@ def main(argv=None) -> int:
     torch.set_num_threads(a.threads)
     from rg_core.eval.reasoning import features, fit_domain_prior, fit_text_reasoner, load_descriptions, scene_vocabularies, split
     from rg_core.perception.embed import MiniLMText
-    from rg_core.perception.reasoner import TextReasoner, _CachedText
+    from rg_core.perception.reasoner import TextReasoner
+    from rg_core.perception.text_cache import CachedText
 
     sp = split(load_descriptions())
     tune_all = sp.tune
@@ -161,11 +162,11 @@ def main(argv=None) -> int:
     # Separate caches: neither reasoner sees the other's query embeddings (honest warm latency).
     t = time.perf_counter()
     old = TextReasoner(use_knowledge=False, name_weight=1.0, min_similarity=0.30, absent_margin=0.15,
-                       background_exclude=0.6, domain_prior=False, text_model=_CachedText(model))
+                       background_exclude=0.6, domain_prior=False, text_model=CachedText(model))
     old.background()
     load_old = time.perf_counter() - t
     t = time.perf_counter()
-    new = TextReasoner(text_model=_CachedText(model), **(encoder_fit(a.text_model)[0] if other else {}))
+    new = TextReasoner(text_model=CachedText(model), **(encoder_fit(a.text_model)[0] if other else {}))
     new.background()
     load_new = time.perf_counter() - t
     res = {"date": time.strftime("%Y-%m-%d"), "threads": a.threads, "text_model": a.text_model,
@@ -187,7 +188,7 @@ def main(argv=None) -> int:
             fit_file.write_text(json.dumps({**{k: f[k] for k in FIT_KEYS}, "text_model": a.text_model,
                                             "fit": "benchmarks/bench_reasoning.py --fit --text-model "
                                                    f"{a.text_model}, tune half only, {res['date']}"}, indent=1) + "\n")
-        new = TextReasoner(text_model=_CachedText(model), name_weight=f["name_weight"], min_similarity=f["min_similarity"],
+        new = TextReasoner(text_model=CachedText(model), name_weight=f["name_weight"], min_similarity=f["min_similarity"],
                            absent_margin=f["absent_margin"], background_exclude=f["background_exclude"],
                            prior_trust=f["prior_trust"])
     reasoners = {"old": old, "new": new}
@@ -207,7 +208,7 @@ def main(argv=None) -> int:
                 w, scorer.reduce = fit["llm_weight"], fit["llm_reduce"]
                 print("llm fit:", json.dumps({k: v for k, v in fit.items() if k != "grid"}))
             res["llm"]["llm_weight"], res["llm"]["reduce"] = w, scorer.reduce
-            reasoners["new+llm"] = TextReasoner(text_model=_CachedText(model), llm_scorer=scorer, llm_weight=w,
+            reasoners["new+llm"] = TextReasoner(text_model=CachedText(model), llm_scorer=scorer, llm_weight=w,
                                                 name_weight=new.name_weight, min_similarity=new.min_similarity,
                                                 absent_margin=new.absent_margin,
                                                 background_exclude=new.background_exclude, prior_trust=new.prior_trust)
@@ -217,7 +218,7 @@ def main(argv=None) -> int:
                 scorer2 = LLMChoiceScorer(model_path=a.llm_model or None, n_threads=a.llm_threads or a.threads,
                                           memo_size=8192, knowledge_max_names=a.llm_knowledge_max, reduce=bn["reduce"])
                 reasoners["new+llm*"] = TextReasoner(
-                    text_model=_CachedText(model), llm_scorer=scorer2, llm_weight=bn["llm_weight"],
+                    text_model=CachedText(model), llm_scorer=scorer2, llm_weight=bn["llm_weight"],
                     name_weight=new.name_weight, min_similarity=new.min_similarity, absent_margin=new.absent_margin,
                     background_exclude=new.background_exclude, prior_trust=new.prior_trust)
                 reasoners["new+llm*"].background()

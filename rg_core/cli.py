@@ -127,7 +127,7 @@ def cmd_demo(args, cfg) -> dict:
 
 
 def cmd_map(args, cfg) -> dict:
-    from .map.run import map_scene
+    from .eval.mapping import map_scene
     from .map.store import save_map
 
     over = {k: v for k, v in (("max_gaussians", args.max_gaussians), ("iters_per_keyframe", args.iters_per_keyframe),

@@ -1,7 +1,8 @@
-"""Small process-level helpers shared by the CLI and the benchmark scripts."""
+"""Small process-level helpers shared by the CLI, the registries and the benchmark scripts."""
 from __future__ import annotations
 
 import contextlib
+import importlib
 import os
 import sys
 
@@ -41,3 +42,15 @@ def run_json_script(main) -> None:
         finally:
             sys.stdout = sys.__stdout__
     sys.exit(code)
+
+
+def make_registered(kind: str, registry: dict, name: str, **kwargs):
+    """Build backend `name` of a registry {name: factory or "package.module:attr"}: a string entry
+    is imported on first use, so a registry never imports its backends (nor their dependencies)."""
+    if name not in registry:
+        raise ValueError(f"unknown {kind} {name!r}; known: {sorted(registry)}")
+    factory = registry[name]
+    if isinstance(factory, str):
+        module, _, attr = factory.partition(":")
+        factory = getattr(importlib.import_module(module), attr)
+    return factory(**kwargs)

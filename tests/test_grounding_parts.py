@@ -187,7 +187,8 @@ def test_registration_border_measures_the_mask_to_depth_edge_offset():
 
 
 def test_connected_to_keeps_the_anchor_piece():
-    from rg_core.grounding.boxes import connected_to, map_spacing
+    from rg_core.geometry.points import map_spacing
+    from rg_core.grounding.boxes import connected_to
 
     rng = np.random.default_rng(0)
     a = rng.uniform(0, 0.05, (200, 3))                 # dense piece at the origin
@@ -205,7 +206,8 @@ def test_connected_to_keeps_the_anchor_piece():
 def test_connected_to_prefers_the_piece_the_mask_supports():
     """ycbv_0002's large marker: the peak pixel's anchor fell on 6 Gaussians of the table behind the
     marker's cap (in its mask, with the table's depth); the body, which the mask sees, was dropped."""
-    from rg_core.grounding.boxes import connected_to, map_spacing
+    from rg_core.geometry.points import map_spacing
+    from rg_core.grounding.boxes import connected_to
 
     rng = np.random.default_rng(1)
     body = rng.uniform(0, 0.02, (150, 3)) * [1, 6, 1]          # a thin upright object

@@ -2,6 +2,8 @@
 its loader's errors, the knowledge-scored text reasoner (evidence, open-set rejection, bad input,
 missing files, the LLM ensemble hook) and the ConSE gloss class embeddings. Real MiniLM."""
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,9 +11,11 @@ import torch
 
 from rg_core.eval.reasoning import load_descriptions, scene_vocabularies, split
 from rg_core.perception.knowledge import DEFAULT_PATH, KnowledgeError, load_knowledge
-from rg_core.perception.reason_scoring import combine, embed_cached
+from rg_core.perception.reason_scoring import combine
 from rg_core.perception.reasoner import TextReasoner, load_domain_prior, shared_text_model
-from rg_core.perception.wordnet import WordNet, find_dir
+from rg_core.perception.text_cache import embed_cached
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))   # build-time code
+from wordnet_db import WordNet, find_dir  # noqa: E402
 
 WN_DIR = find_dir()
 needs_wordnet = pytest.mark.skipif(WN_DIR is None, reason="WordNet database not installed "

@@ -93,7 +93,7 @@ def test_bad_inputs(scorer, query, names, message):
 @needs_model
 def test_missing_and_corrupt_model_file(tmp_path):
     from rg_core.perception.llm_scorer import BackendError, LLMChoiceScorer
-    from rg_core.perception.reasoner_llm import packaged_gguf
+    from rg_core.perception.gguf import packaged_gguf
 
     missing = tmp_path / "nope.gguf"
     with pytest.raises(BackendError, match="nope.gguf"):

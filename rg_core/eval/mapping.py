@@ -1,12 +1,19 @@
-"""Map quality on held-out views: PSNR, depth error and coverage at the mapping resolution."""
+"""Map quality on held-out views (PSNR, depth error and coverage at the mapping resolution), and
+`map_scene`: a scene mapped and evaluated, what `rg map` and the benchmarks report."""
 from __future__ import annotations
+
+import time
 
 import numpy as np
 import torch
 
+from ..config import MapConfig
+from ..io.captures import read_scene
 from ..io.scene import Frame
 from ..map.frames import prepare_frame
 from ..map.mapper import Mapper
+from ..map.run import stream_frames
+from ..util import peak_rss_mb
 
 
 def psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float:
@@ -45,3 +52,19 @@ def evaluate_views(mapper: Mapper, frames: list[Frame]) -> dict:
             "depth_abs_error_median_m": round(float(np.nanmedian([r["depth_med"] for r in rows])), 5),
             "depth_abs_error_mean_m": round(mean("depth_mean"), 5), "coverage": round(mean("coverage"), 4),
             "coverage_valid_depth": round(mean("coverage_valid_depth"), 4)}
+
+
+def map_scene(scene_dir, cfg: MapConfig, progress: bool = True, bag_options=None) -> tuple[Mapper, dict]:
+    """Map the training frames of a scene (folder or ROS 2 bag) and evaluate on its test frames."""
+    scene = read_scene(scene_dir, test_every=8, bag_options=bag_options)
+    mapper = Mapper(cfg)
+    seconds = stream_frames(mapper, scene.train, progress)
+    seconds += mapper.refine(cfg.final_iters)
+    t = time.perf_counter()
+    quality = evaluate_views(mapper, scene.test)
+    report = {**mapper.stats(), "seconds_total": round(seconds, 3), "seconds_eval": round(time.perf_counter() - t, 3),
+              "test": quality, "peak_rss_mb": round(peak_rss_mb(), 1), "scene": str(scene_dir),
+              "train_frames": len(scene.train), "test_frames": len(scene.test)}
+    if getattr(scene, "info", None):   # a bag: topics used, frames dropped (TF missing, ...) per reason
+        report["bag"] = scene.info
+    return mapper, report

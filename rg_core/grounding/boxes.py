@@ -14,18 +14,6 @@ def robust_inliers(points: np.ndarray, k: float = 3.0) -> np.ndarray:
     return (np.abs(points - med) <= k * np.maximum(mad, 1e-3)).all(1)
 
 
-def map_spacing(points: np.ndarray, sample: int = 4000, seed: int = 0) -> float:
-    """Median nearest-neighbour distance (m) of points [N, 3] (a sample of them): the map's resolution."""
-    from scipy.spatial import cKDTree
-
-    pts = np.asarray(points, np.float64)
-    if len(pts) < 2:
-        return 0.0
-    sub = pts if len(pts) <= sample else pts[np.random.default_rng(seed).choice(len(pts), sample, replace=False)]
-    d, _ = cKDTree(pts).query(sub, k=2)
-    return float(np.median(d[:, 1]))
-
-
 def connected_to(points: np.ndarray, anchor: np.ndarray | None, link: float,
                  support: np.ndarray | None = None) -> np.ndarray:
     """bool [N]: the points [N, 3] joined to `anchor` [3] by chains of steps of at most `link` (m),

@@ -14,8 +14,9 @@ import torch
 
 from ..config import RGConfig
 from ..geometry.conventions import backproject, pixels_to_points
+from ..geometry.points import map_spacing
 from ..render import rasterize
-from .boxes import connected_to, group_boxes, map_spacing, robust_inliers
+from .boxes import connected_to, group_boxes, robust_inliers
 from .cache import MapCache
 from .carve import MaskView, mask_depth_offsets, mask_votes, registration_border
 from .grouping import Groups, cluster_instances

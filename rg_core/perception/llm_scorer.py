@@ -89,13 +89,13 @@ class LLMChoiceScorer:
         if reduce not in ("sum", "mean"):
             raise ValueError(f"reduce must be 'sum' or 'mean', got {reduce!r}")
         if importlib.util.find_spec("llama_cpp") is None:
-            from .reasoner_llm import llm_install_command
+            from .gguf import llm_install_command
             raise BackendError("the LLM scorer needs llama-cpp-python, which the demo install leaves out: "
                                f"install it with {llm_install_command()}")
         if model_path:
             path = Path(model_path).expanduser()
         else:
-            from .reasoner_llm import packaged_gguf
+            from .gguf import packaged_gguf
             path = packaged_gguf()
         self.path = path
         self._check_file(path)

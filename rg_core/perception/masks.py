@@ -42,16 +42,19 @@ class MaskGenerator:
                 raise ValueError(f"{self.name}: K must be [3, 3], got {np.asarray(K).shape}")
 
 
-_REGISTRY: dict[str, Callable[..., MaskGenerator]] = {}
+_REGISTRY: dict[str, Callable[..., MaskGenerator] | str] = {
+    "rgbd": "rg_core.perception.masks_rgbd:RGBDMaskGenerator",
+    "sam_onnx": "rg_core.perception.masks_sam:SamOnnxGenerator",
+    "sam": "rg_core.perception.masks_sam:SegmentAnythingGenerator",
+}
 
 
-def register(name: str, factory: Callable[..., MaskGenerator]) -> None:
+def register(name: str, factory: Callable[..., MaskGenerator] | str) -> None:
+    """Add a backend: a factory, or "package.module:attr" imported when first made."""
     _REGISTRY[name] = factory
 
 
 def make_mask_generator(name: str, **kwargs) -> MaskGenerator:
-    from . import masks_rgbd, masks_sam  # noqa: F401 - built-in backends register on import
+    from ..util import make_registered
 
-    if name not in _REGISTRY:
-        raise ValueError(f"unknown mask generator {name!r}; known: {sorted(_REGISTRY)}")
-    return _REGISTRY[name](**kwargs)
+    return make_registered("mask generator", _REGISTRY, name, **kwargs)

@@ -21,7 +21,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from .masks import Mask, MaskGenerator, register
+from .masks import Mask, MaskGenerator
 
 
 @dataclass
@@ -181,6 +181,3 @@ def dedupe(masks: list[Mask], iou_thresh: float, max_masks: int) -> list[Mask]:
             areas.append(a)
     kept.sort(key=lambda m: -m.score)
     return kept[:max_masks]
-
-
-register("rgbd", RGBDMaskGenerator)

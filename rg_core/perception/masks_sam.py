@@ -30,7 +30,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .masks import BackendError, Mask, MaskGenerator, register
+from .masks import BackendError, Mask, MaskGenerator
 
 SAM_SIZE = 1024  # SAM's input frame: longest side
 SAM_MEAN = np.array([123.675, 116.28, 103.53], np.float32)
@@ -293,7 +293,3 @@ class SegmentAnythingGenerator(MaskGenerator):
     def generate(self, rgb: np.ndarray, depth: np.ndarray | None = None, K: np.ndarray | None = None) -> list[Mask]:
         self.check_inputs(rgb, depth, K)
         return records_to_masks(self.amg.generate(rgb))[: self.max_masks]
-
-
-register("sam_onnx", SamOnnxGenerator)
-register("sam", SegmentAnythingGenerator)

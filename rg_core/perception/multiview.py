@@ -19,7 +19,7 @@ def mask_gaussians(mapper, sset, voxel_spacings: float = 1.0) -> tuple[list[tupl
     mask index), CSR matrix [masks, V]; `voxel_spacings` <= 0 uses the Gaussians themselves."""
     from scipy.sparse import csr_matrix
 
-    from ..grounding.boxes import map_spacing
+    from ..geometry.points import map_spacing
 
     kfs = {kf.index: kf for kf in mapper.keyframes}
     rows, cols, keys = [], [], []

@@ -11,14 +11,7 @@ what is fit is what runs.
 """
 from __future__ import annotations
 
-import hashlib
-import logging
-from pathlib import Path
-
-import numpy as np
 import torch
-
-log = logging.getLogger(__name__)
 NAME_TEMPLATE = "a {}"
 
 
@@ -40,47 +33,3 @@ def background_keep(name_emb_vocab: torch.Tensor, name_emb_bg: torch.Tensor, exc
     if not len(name_emb_vocab):
         return torch.ones(len(name_emb_bg), dtype=torch.bool)
     return (name_emb_bg @ name_emb_vocab.T).max(1).values < exclude
-
-
-def inner_encoder(text_model):
-    """The encoder behind an embedding cache wrapper (reasoner._CachedText keeps it as .model)."""
-    from .reasoner import _CachedText   # reasoner imports this module: import at call time
-
-    return text_model.model if isinstance(text_model, _CachedText) else text_model
-
-
-def model_identity(text_model) -> str:
-    """What a stored embedding depends on besides its text: the encoder's class, model folder name
-    and width (without it, embeddings of one encoder were served to another from the disk cache)."""
-    m = inner_encoder(text_model)
-    folder = getattr(m, "folder", None) or getattr(m, "model_name", None) or ""
-    return f"{type(m).__name__}:{Path(str(folder)).name}:{getattr(m, 'dim', '')}"
-
-
-def embed_cached(text_model, texts: list[str], cache_dir: str | Path | None, tag: str) -> torch.Tensor:
-    """Embeddings of a fixed text list (the background, ConSE's 1000 classes), kept on disk under
-    cache_dir keyed by a hash of the texts: they depend only on the texts and the model, and
-    embedding 2000 texts on 2 cores takes 10-20 s. A missing, unreadable or stale cache is rebuilt."""
-    if not cache_dir:
-        return text_model(texts)
-    ident = model_identity(text_model)
-    key = hashlib.sha1(("\n".join(texts) + f"|{tag}|{ident}").encode()).hexdigest()[:16]
-    p = Path(cache_dir).expanduser() / f"{tag}_{key}.npy"
-    if p.is_file():
-        try:
-            a = np.load(p, allow_pickle=False)
-            dim = getattr(inner_encoder(text_model), "dim", None)
-            if a.shape[0] == len(texts) and a.dtype == np.float32 and (dim is None or a.shape[-1] == dim):
-                return torch.from_numpy(a)
-            log.warning("embedding cache %s has shape %s for %d texts: rebuilding", p, a.shape, len(texts))
-        except (OSError, ValueError) as exc:
-            log.warning("embedding cache %s unreadable (%s): rebuilding", p, exc)
-    e = text_model(texts).float()
-    try:
-        p.parent.mkdir(parents=True, exist_ok=True)
-        tmp = p.with_suffix(".tmp.npy")
-        np.save(tmp, e.numpy())
-        tmp.replace(p)
-    except OSError as exc:
-        log.warning("embedding cache %s not written (%s)", p, exc)
-    return e

@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from .masks import BackendError
+from .text_cache import CachedText, embed_cached, inner_encoder
 
 log = logging.getLogger(__name__)
 # Fit on the tune half of the description set (benchmarks/bench_reasoning.py --fit; provenance in
@@ -184,22 +185,6 @@ class Reasoner:
         raise NotImplementedError
 
 
-class _CachedText:
-    """Embedding cache around MiniLMText: a scene's vocabulary is embedded once."""
-
-    def __init__(self, model):
-        self.model, self.cache = model, {}
-
-    def __call__(self, texts: list[str]) -> torch.Tensor:
-        missing = [t for t in dict.fromkeys(texts) if t not in self.cache]
-        if missing:
-            for t, e in zip(missing, self.model(missing)):
-                self.cache[t] = e
-            if len(self.cache) > 20000:
-                self.cache = {t: self.cache[t] for t in texts}
-        return torch.stack([self.cache[t] for t in texts]) if texts else torch.zeros(0, self.model.dim)
-
-
 _SHARED_TEXT = None
 
 
@@ -209,7 +194,7 @@ def shared_text_model():
     if _SHARED_TEXT is None:
         from .embed import MiniLMText
 
-        _SHARED_TEXT = _CachedText(MiniLMText())
+        _SHARED_TEXT = CachedText(MiniLMText())
     return _SHARED_TEXT
 
 
@@ -273,7 +258,6 @@ class TextReasoner(Reasoner):
             except ValueError as exc:  # the reasoner still answers, without the open-set prior
                 self.prior_error = str(exc)
                 log.warning("text reasoner without open-set prior: %s", exc)
-        from .reason_scoring import inner_encoder
         dim = getattr(inner_encoder(self.text), "dim", None)
         if self.prior is not None and dim is not None and len(self.prior.coef) != dim:
             self.prior_error = (f"open-set prior {domain_prior_path or DOMAIN_PRIOR_PATH} is {len(self.prior.coef)}-d, "
@@ -292,7 +276,6 @@ class TextReasoner(Reasoner):
     def background(self):
         """(names [B], name embeddings [B, D], gloss embeddings [B, D] or None), built once."""
         if self._bg is None:
-            from .reason_scoring import embed_cached
             if self.knowledge:
                 names = [e["name"] for e in self.knowledge.imagenet]
                 glosses = self.knowledge.imagenet_texts()
@@ -433,19 +416,22 @@ class TextReasoner(Reasoner):
                          similarity=sim)
 
 
-_REGISTRY: dict[str, Callable[..., Reasoner]] = {"text": TextReasoner}
+_REGISTRY: dict[str, Callable[..., Reasoner] | str] = {
+    "text": TextReasoner,
+    "openai": "rg_core.perception.reasoner_llm:OpenAIChatReasoner",
+    "llama_cpp": "rg_core.perception.reasoner_llm:LlamaCppReasoner",
+}
 
 
-def register(name: str, factory: Callable[..., Reasoner]) -> None:
+def register(name: str, factory: Callable[..., Reasoner] | str) -> None:
+    """Add a backend: a factory, or "package.module:attr" imported when first made."""
     _REGISTRY[name] = factory
 
 
 def make_reasoner(name: str = "text", **kwargs) -> Reasoner:
-    from . import reasoner_llm  # noqa: F401 - the LLM backends register on import
+    from ..util import make_registered
 
-    if name not in _REGISTRY:
-        raise ValueError(f"unknown reasoner {name!r}; known: {sorted(_REGISTRY)}")
-    return _REGISTRY[name](**kwargs)
+    return make_registered("reasoner", _REGISTRY, name, **kwargs)
 
 
 def llm_scorer_from_config(cfg) -> dict:
@@ -470,7 +456,7 @@ def reasoner_from_config(cfg) -> Reasoner:
     if cfg.text_model not in ("", "minilm"):
         from .sentence_text import encoder_fit, make_text_model
 
-        text["text_model"] = _CachedText(make_text_model(cfg.text_model, cfg.cache_dir))
+        text["text_model"] = CachedText(make_text_model(cfg.text_model, cfg.cache_dir))
         fit, prior = encoder_fit(cfg.text_model)
         text.update(fit)
         if prior is None:

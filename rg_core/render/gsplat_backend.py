@@ -8,6 +8,7 @@ from __future__ import annotations
 import torch
 
 from .camera import Camera
+from .types import RenderOutput
 
 
 def rasterize_gsplat(means, scales, quats, opacities, channels, camera: Camera, background, eps2d: float):
@@ -15,7 +16,6 @@ def rasterize_gsplat(means, scales, quats, opacities, channels, camera: Camera, 
         from gsplat import rasterization
     except ImportError as exc:
         raise RuntimeError("backend 'gsplat' needs the gsplat package (pip install gsplat) and CUDA") from exc
-    from .rasterize import RenderOutput
 
     dev = means.device
     K = camera.K.to(dev, torch.float32).clone()

@@ -7,29 +7,17 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
-
 import torch
 
 from . import fast_cpu
 from .camera import Camera
-from .projection import Projected, project_gaussians
+from .projection import project_gaussians
 from .reference import rasterize_reference
+from .types import RenderOutput
 
 log = logging.getLogger(__name__)
 
 BACKENDS = ("auto", "cpu", "reference", "gsplat")
-
-
-@dataclass
-class RenderOutput:
-    """Per-pixel results. `depth` is the expected depth (alpha-normalised); 0 where alpha ~ 0."""
-
-    channels: torch.Tensor        # [H, W, C]
-    depth: torch.Tensor           # [H, W]
-    alpha: torch.Tensor           # [H, W] accumulated opacity in [0, 1]
-    ids: torch.Tensor | None      # [H, W] int64, Gaussian with the largest blending weight, -1 none
-    projected: Projected | None   # screen-space Gaussians (None for the gsplat backend)
 
 
 def _select(subset: torch.Tensor | None, n: int) -> torch.Tensor | None:

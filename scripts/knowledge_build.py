@@ -1,7 +1,7 @@
 """Build rg_core/perception/data/name_knowledge.json from WordNet (issue 15, part 1).
 
     apt-get install wordnet-base        # the WordNet 3.0 database files, /usr/share/wordnet
-    python -m rg_core.perception.knowledge_build [--wordnet DIR] [--out FILE]
+    python scripts/knowledge_build.py [--wordnet DIR] [--out FILE]
 
 Why a committed data file: run time (the reasoner, ConSE) then needs neither WordNet nor a
 parser, and a fresh machine or CI installs nothing new; tests/test_knowledge.py checks the file
@@ -37,10 +37,11 @@ from pathlib import Path
 
 import torch
 
-from .wordnet import WordNet, find_dir
+from wordnet_db import WordNet, find_dir   # scripts/, build time only
 
-OUT = Path(__file__).parent / "data" / "name_knowledge.json"
-DESCRIPTIONS = Path(__file__).parent / "data" / "descriptions.json"
+DATA = Path(__file__).resolve().parents[1] / "rg_core" / "perception" / "data"
+OUT = DATA / "name_knowledge.json"
+DESCRIPTIONS = DATA / "descriptions.json"
 TIERS = ({"artifact", "food", "substance"}, {"plant", "object", "animal", "body", "shape"})
 CATEGORY_PROMPT = {
     "food": "food or a food package from the kitchen", "kitchen": "kitchen utensil, container or tableware",
@@ -64,9 +65,9 @@ MAX_HYPERNYMS = 3
 
 def vocabulary_names(descriptions: Path = DESCRIPTIONS) -> dict[str, str]:
     """name -> category for every name a scene or the reasoner may offer."""
-    from ..grounding.vocabulary import HOUSEHOLD
-    from ..synth.catalogue import PYBULLET_OBJECTS, SHARED_OBJECTS
-    from .reasoner import COCO_NAMES
+    from rg_core.grounding.vocabulary import HOUSEHOLD
+    from rg_core.perception.reasoner import COCO_NAMES
+    from rg_core.synth.catalogue import PYBULLET_OBJECTS, SHARED_OBJECTS
 
     names: dict[str, str] = {}
     if descriptions.is_file():
@@ -144,7 +145,7 @@ def build(wordnet_dir: str | Path, text_model=None, descriptions: Path = DESCRIP
         e["name"] = name
         imagenet.append(e)
     return {"version": 1, "about": "Name knowledge from Princeton WordNet 3.0 (Debian wordnet-base), built by "
-            "rg_core/perception/knowledge_build.py; sense choice and overrides documented there. WordNet 3.0 "
+            "scripts/knowledge_build.py; sense choice and overrides documented there. WordNet 3.0 "
             "license: Princeton University (free use, copyright notice kept: 'WordNet 3.0 Copyright 2006 by "
             "Princeton University. All rights reserved.').", "names": names, "imagenet": imagenet}
 
@@ -157,7 +158,7 @@ def main(argv=None) -> int:
     root = a.wordnet or find_dir()
     if root is None:
         raise SystemExit("WordNet database not found: apt-get install wordnet-base, or pass --wordnet DIR")
-    from .embed import MiniLMText
+    from rg_core.perception.embed import MiniLMText
 
     data = build(root, MiniLMText())
     Path(a.out).write_text(json.dumps(data, indent=0, ensure_ascii=False, sort_keys=False) + "\n", encoding="utf-8")
