@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import logging
 import sys
 import time
 from pathlib import Path
@@ -412,8 +413,25 @@ def _print_human(result: dict, file, human=None) -> None:
         print(f"{k}: {v}", file=file)
 
 
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever sys.stderr is when a record comes (a test may swap it)."""
+
+    stream = property(lambda self: sys.stderr, lambda self, value: None)
+
+
+def _log_to_stderr() -> None:
+    """The library's progress notes (logging INFO of rg_core) on stderr, as the CLI's own messages."""
+    lg = logging.getLogger("rg_core")
+    if not any(isinstance(h, _StderrHandler) for h in lg.handlers):
+        handler = _StderrHandler()
+        handler.setFormatter(logging.Formatter("%(message)s"))
+        lg.addHandler(handler)
+        lg.setLevel(logging.INFO)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    _log_to_stderr()
     with stdout_to_stderr() as real_stdout:
         try:
             cfg = load_config(args.config)

@@ -2,7 +2,7 @@
 One function so `rg ground`, `rg eval`, `rg demo`, the benchmarks and the tests build alike."""
 from __future__ import annotations
 
-import sys
+import logging
 import time
 
 from ..config import RGConfig
@@ -10,6 +10,8 @@ from ..field import FeatureField
 from ..map.mapper import Mapper
 from ..map.run import stream_frames
 from .pipeline import Grounder
+
+log = logging.getLogger(__name__)
 
 
 def supervise(mapper: Mapper, scene, kind: str, text_encoder, progress: bool = False,
@@ -62,8 +64,8 @@ def build_grounder(scene, cfg: RGConfig, supervision: str = "default", field_sec
     secs = cfg.field.seconds if field_seconds is None else field_seconds
     if secs > 0:
         report["field"] = field.train(seconds=secs, progress=progress)
-    print(f"grounding ready: {len(mapper.gaussians)} Gaussians, {len(mapper.keyframes)} keyframes, "
-          f"{field.steps} field steps", file=sys.stderr)
+    log.info("grounding ready: %d Gaussians, %d keyframes, %d field steps", len(mapper.gaussians),
+             len(mapper.keyframes), field.steps)
     names = [o.name for o in scene.objects]
     grounder = Grounder(mapper, field, cfg, reasoner=reasoner, text_encoder=text, scene_names=names)
     if mapper.supervision is not None:

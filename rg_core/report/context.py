@@ -3,7 +3,7 @@ sections that need the same default map build it once."""
 from __future__ import annotations
 
 import dataclasses
-import sys
+import logging
 import time
 from pathlib import Path
 
@@ -13,6 +13,8 @@ from ..io.captures import read_scene
 from ..map.mapper import Mapper
 from ..map.run import stream_frames
 from .budgets import Budgets
+
+log = logging.getLogger(__name__)
 
 
 class Context:
@@ -26,7 +28,7 @@ class Context:
         self.plots.mkdir(parents=True, exist_ok=True)
 
     def log(self, msg: str) -> None:
-        print(f"[report] {msg}", file=sys.stderr, flush=True)
+        log.info("[report] %s", msg)
 
     # ------------------------------------------------------------------------------ maps
 
