@@ -193,3 +193,20 @@ def test_conse_gloss_classes():
     assert float(e.class_emb[isopod] @ e.encode_texts(["fruit"])[0]) < 0.3
     with pytest.raises(ValueError, match="class_text"):
         ConSEEmbedder(class_text="poem")
+
+
+def test_benchmark_decision_is_the_reasoners(text):
+    """eval/reasoning.predict (the vectorised decision the fit tunes) and TextReasoner's implicit
+    answer agree query by query: what is fit is what runs. Real and absent held-out descriptions."""
+    from rg_core.eval.reasoning import features, predict
+
+    r = TextReasoner(text_model=text, domain_prior=False)
+    sp = split(load_descriptions())
+    queries = [q for q in sp.held if q.target][:24] + [q for q in sp.held if not q.target][:8]
+    vocabs = scene_vocabularies(queries, sp.names)
+    picks, _ = predict(features(r, queries, sp.names), [[sp.names.index(n) for n in v] for v in vocabs],
+                       r.name_weight, r.min_similarity, r.absent_margin, r.background_exclude)
+    assert -1 in picks and any(p >= 0 for p in picks)   # both decisions occur
+    for q, v, p in zip(queries, vocabs, picks):
+        got = r.reason(q.text, v, mode="implicit").target
+        assert got == ("" if p == -1 else sp.names[p]), (q.text, v, got)
