@@ -13,15 +13,15 @@ import numpy as np
 import torch
 
 from ..config import RGConfig
-from ..geometry.conventions import backproject, pixels_to_points
+from ..geometry.conventions import backproject
 from ..geometry.points import map_spacing
 from ..render import rasterize
-from .boxes import connected_to, group_boxes, robust_inliers
+from . import stages
 from .cache import MapCache
-from .carve import MaskView, mask_depth_offsets, mask_votes, registration_border
+from .carve import mask_depth_offsets, registration_border
 from .grouping import Groups, cluster_instances
-from .relevancy import CANONICAL, relevancy, relevancy_pca
-from .result import GroundedObject, GroundingResult
+from .relevancy import CANONICAL, relevancy_pca
+from .result import GroundingResult
 from .vocabulary import build_vocabulary, looks_like_name
 
 log = logging.getLogger(__name__)
@@ -195,47 +195,7 @@ class Grounder:
             return f"query is {len(query)} characters long; at most {self.gcfg.max_query_chars} are accepted"
         return None
 
-    # ------------------------------------------------------------------------------ pipeline
-
-    def _mask_candidates(self, target: torch.Tensor) -> list[tuple]:
-        """Per keyframe, its mask most similar to the target text [D]:
-        [(similarity, mask pixels, keyframe, mask index, scale)]."""
-        by_index = {kf.index: kf for kf in self.mapper.keyframes}
-        cands = []
-        for k, sup in self.mapper.supervision.by_keyframe.items():
-            if k not in by_index or not len(sup.embeddings):
-                continue
-            sims = torch.nn.functional.normalize(sup.embeddings.float(), dim=-1) @ target
-            i = int(sims.argmax())
-            cands.append((float(sims[i]), int(sup.masks[i].sum()), by_index[k], i, float(sup.scales[i])))
-        return cands
-
-    def reference_view(self, target: torch.Tensor, cands: list[tuple] | None = None):
-        """Keyframe whose mask embedding is most similar to the target text [D]:
-        -> (keyframe, mask index, similarity, physical scale s*)."""
-        cands = self._mask_candidates(target) if cands is None else cands
-        if not cands:
-            return None, -1, -2.0, 0.0
-        # Among views about as similar as the best, the one that sees the target largest.
-        top = max(c[0] for c in cands)
-        s, _, kf, i, scale = max((c for c in cands if c[0] >= top - 0.02), key=lambda c: c[1])
-        return kf, i, s, scale
-
-    def carve_views(self, cands: list[tuple]) -> list[MaskView]:
-        """The target's masks in up to `carve_views` keyframes: those whose best mask is about as
-        similar to the target as the best one (the same object seen again), largest first."""
-        n = self.gcfg.carve_views
-        if n <= 0 or not cands:
-            return []
-        top = max(c[0] for c in cands)
-        near = sorted((c for c in cands if c[0] >= max(top - 0.02, self.gcfg.min_mask_similarity)), key=lambda c: -c[1])
-        out = []
-        for _, _, kf, i, _ in near[:n]:
-            mask = self.mapper.supervision.by_keyframe[kf.index].masks[i]
-            if mask.shape == tuple(kf.depth.shape):
-                out.append(MaskView(np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64),
-                                    kf.depth.numpy(), mask))
-        return out
+    # ------------------------------------------------------------------------------ map-derived data
 
     def groups(self, scale: float, region: np.ndarray | None = None) -> Groups:
         """Clusters of instance features at one scale, over the Gaussians in `region` (bool [N];
@@ -327,7 +287,6 @@ class Grounder:
             return self._ground(query, mode, max_results)
 
     def _ground(self, query: str, mode: str, max_results: int) -> GroundingResult:
-        t = {}
         t0 = time.perf_counter()
         bad = self._check_query(query)
         if bad:
@@ -340,146 +299,53 @@ class Grounder:
         if not_ready:
             return GroundingResult(False, not_ready, query=query)
         self._check_cache()
+        t: dict[str, float] = {}
+        res = GroundingResult(False, "", query=query)
+        res.timings = t
 
+        def timed(stage, fn, *args):
+            s = time.perf_counter()
+            out = fn(*args)
+            t[stage] = time.perf_counter() - s
+            return out
+
+        r = timed("reason", self._reason, query, mode)
+        t["reason"] = time.perf_counter() - t0   # from the start: validation is part of it
+        res.target, res.explanation = r.target, r.explanation
+        if not r.target:
+            res.message = f"nothing in the map matches {query!r}: {r.explanation}"
+            return res
+        ref = timed("reference_view", stages.reference, self, r.target)
+        if isinstance(ref, str):
+            res.message = ref
+            return res
+        res.reference_view, res.scale = ref.keyframe.index, ref.scale
+        pk = timed("relevancy", stages.peak, self, ref, r.target)
+        groups, found = timed("cluster", stages.candidate_groups, self, ref, pk, max_results)
+        res.objects = timed("group", stages.objects, self, ref, pk, found, max_results, r.confidence)
+        t["total"] = time.perf_counter() - t0
+        if not res.objects:
+            res.message = (f"no Gaussian group for {r.target!r} at scale {ref.scale:.3f} m: HDBSCAN found "
+                           f"{len(groups.centres)} groups and none held the most relevant pixel's feature")
+            return res
+        kf, n = ref.keyframe.index, len(res.objects[0].gaussian_ids)
+        res.success, res.confidence = True, res.objects[0].confidence
+        res.message = (f"{len(res.objects)} group(s) for {r.target!r}, {n} Gaussians; reference view {kf}, "
+                       f"scale {ref.scale:.3f} m")
+        res.explanation = (f"{r.explanation} Reference view {kf} (mask similarity {ref.similarity:.2f}); scale "
+                           f"{ref.scale:.3f} m; the most relevant pixel ({pk.px}, {pk.py}, relevancy "
+                           f"{pk.relevancy:.2f}) lies in a group of {n} Gaussians.")
+        return res
+
+    def _reason(self, query: str, mode: str):
+        """The reasoner's target for the query. An LVLM sees the scene (the paper's reference view:
+        the target is not known yet, so a few keyframes spread over the map); text reasoners and
+        explicit queries need no picture."""
         vocab = self.vocabulary()
         if mode != "implicit" and looks_like_name(query) and query.strip() not in vocab:
             vocab.append(query.strip())
-        # An LVLM sees the scene (the paper's reference view: the target is not known yet, so a few
-        # keyframes spread over the map); text reasoners and explicit queries need no picture.
         image = self.scene_image() if mode != "explicit" and getattr(self.reasoner, "accepts_images", False) else None
-        r = self.reasoner.reason(query, vocab, image=image, mode=mode)
-        t["reason"] = time.perf_counter() - t0
-        res = GroundingResult(False, "", query=query, target=r.target, explanation=r.explanation)
-        if not r.target:
-            res.message = f"nothing in the map matches {query!r}: {r.explanation}"
-            res.timings = t
-            return res
-
-        t1 = time.perf_counter()
-        target = self.encode([r.target])[0]
-        cands = self._mask_candidates(target)
-        kf, mi, msim, scale = self.reference_view(target, cands)
-        t["reference_view"] = time.perf_counter() - t1
-        if kf is None or msim < self.gcfg.min_mask_similarity:
-            res.message = (f"no part of the map looks like {r.target!r}: best mask similarity {msim:.2f} "
-                           f"< {self.gcfg.min_mask_similarity}")
-            res.timings = t
-            return res
-        res.reference_view, res.scale = kf.index, scale
-
-        t2 = time.perf_counter()
-        w, h = kf.size
-        fr = self.render_keyframe(kf)
-        canon = self.encode(list(CANONICAL))
-        # Features bleed a pixel or two over object borders: take the peak of the 3x3 mean, and
-        # inside the reference mask (the 2D evidence that chose s*) when it has rendered pixels.
-        # Relevancy is computed only over the mask's box grown by 2 pixels (the 3x3 mean of a mask
-        # pixel reads nothing beyond): the same peak as over the whole view, in a fraction of the time.
-        ref_mask = torch.from_numpy(self.mapper.supervision.by_keyframe[kf.index].masks[mi])
-        in_mask = ref_mask.shape == (h, w) and bool((ref_mask & (fr.alpha > self.gcfg.mask_alpha)).any())
-        y0, y1, x0, x1 = 0, h, 0, w
-        if in_mask:
-            ys, xs = torch.nonzero(ref_mask, as_tuple=True)
-            y0, y1 = max(int(ys.min()) - 2, 0), min(int(ys.max()) + 3, h)
-            x0, x1 = max(int(xs.min()) - 2, 0), min(int(xs.max()) + 3, w)
-        rel = self._relevancy(fr, r.target, scale, (slice(y0, y1), slice(x0, x1)))  # [y1-y0, x1-x0]
-        smooth = torch.nn.functional.avg_pool2d(rel[None, None], 3, 1, 1, count_include_pad=False)[0, 0]
-        if in_mask:
-            smooth = torch.where(ref_mask[y0:y1, x0:x1], smooth, torch.full_like(smooth, -1.0))
-        peak = int(smooth.reshape(-1).argmax())
-        py, px = divmod(peak, x1 - x0)
-        peak_rel = float(rel[py, px])
-        py, px = py + y0, px + x0
-        q_inst = self.field.instance(fr.latent[py, px], scale)                # [Di]
-        t["relevancy"] = time.perf_counter() - t2
-
-        t3 = time.perf_counter()
-        # Leave out what the query does not need: one object is sought near the reference mask.
-        region = self.region(kf, ref_mask.numpy(), fr.depth, fr.alpha, scale) if max_results == 1 else None
-        groups = self.groups(scale, region)
-        t["cluster"] = time.perf_counter() - t3
-        t4 = time.perf_counter()
-        sim = groups.centres @ q_inst                                          # [G]
-        order = torch.argsort(sim, descending=True).tolist()
-        home = groups.containing(q_inst)
-        if home >= 0:
-            order.remove(home)
-            order.insert(0, home)
-        chosen = [order[0]] if order else []
-        if max_results > 1 and order:
-            chosen = self._more_instances(groups, order, target, canon, scale, max_results)
-        g = self.mapper.gaussians
-        means, colors = g.means.detach().numpy(), (g.colors.detach().clamp(0, 1) * 255).round().byte().numpy()
-        found = []
-        if home < 0:
-            # The most relevant pixel's feature lies in no cluster: HDBSCAN left that object as noise.
-            # Its group is then the Gaussians around that feature (as tight as a typical cluster).
-            # Too few there (a weakly trained field): the nearest cluster, or with no cluster at all
-            # the 2 x min_cluster_size Gaussians nearest that feature.
-            ball = groups.ball(q_inst)
-            mcs = self.gcfg.min_cluster_size
-            if len(ball) >= mcs:
-                found.append((ball, float(sim.max()) if len(sim) else 1.0))
-                chosen = chosen[1:] if max_results > 1 else []
-            elif not chosen and groups.features is not None and len(groups.features):
-                d = groups.features @ torch.nn.functional.normalize(q_inst.float(), dim=-1)
-                near = torch.topk(d, min(2 * mcs, len(d))).indices.numpy()
-                found.append((np.sort(near), float(d[near].mean())))
-        found += [(groups.members(gi, grow=self.gcfg.grow_groups), float(max(sim[gi], 0.0))) for gi in chosen]
-        link = self.gcfg.link_spacing * self.spacing()
-        z = float(fr.depth[py, px] / fr.alpha[py, px].clamp(min=1e-6))             # the surface there
-        anchor = pixels_to_points(px, py, z, np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64))
-        views = self.carve_views(cands)
-        ref_view = None
-        if self.gcfg.anchor_support and ref_mask.shape == tuple(kf.depth.shape):
-            ref_view = MaskView(np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64),
-                                kf.depth.numpy(), ref_mask.numpy())
-        carved = voted = None
-        border = self.vote_border() if views or ref_view is not None else 0
-        if views:
-            # Votes only where they can matter: the groups and what lies within 4 s* of the peak.
-            near = np.nonzero(np.linalg.norm(means - anchor, axis=1) <= 4 * scale)[0] if z > 0 else np.zeros(0, np.int64)
-            cand = np.unique(np.concatenate([ids for ids, _ in found[:max_results]] + [near]).astype(np.int64))
-            v = mask_votes(means[cand], views, g.scales.detach()[torch.from_numpy(cand)].max(1).values.numpy(),
-                           border_px=border)
-            carved, voted = np.zeros(len(means), bool), np.zeros(len(means), bool)
-            carved[cand], voted[cand] = v.carved(self.gcfg.min_mask_votes), v.voted(self.gcfg.min_mask_votes)
-        for n, (ids, s_g) in enumerate(found[:max_results]):
-            if carved is not None:
-                # Carve what the target's masks see elsewhere; the first group also takes what
-                # several of them see inside (HDBSCAN splits a weakly trained object into pieces).
-                ids = ids[~carved[ids]]
-                if n == 0:
-                    ids = np.union1d(ids, np.nonzero(voted)[0])
-            if link > 0 and len(ids) > 1:  # the first group holds the most relevant point; others their largest piece
-                support = None
-                if n == 0 and ref_view is not None:
-                    # The piece the reference mask sees most, not only the one under its peak pixel.
-                    support = mask_votes(means[ids], [ref_view], g.scales.detach()[torch.from_numpy(ids)]
-                                         .max(1).values.numpy(), border_px=border).inside > 0
-                ids = ids[connected_to(means[ids], anchor if n == 0 and z > 0 else None, link, support)]
-            ids = ids[robust_inliers(means[ids], self.gcfg.outlier_mads)]
-            if not len(ids):
-                continue
-            lo, hi, c, R, ext = group_boxes(means[ids])
-            conf = float(r.confidence) * peak_rel * s_g
-            res.objects.append(GroundedObject(ids.astype(np.int64), means[ids].astype(np.float32), colors[ids],
-                                              lo, hi, c, R, ext, conf))
-        t["group"] = time.perf_counter() - t4
-        t["total"] = time.perf_counter() - t0
-        res.timings = t
-        if not res.objects:
-            res.message = (f"no Gaussian group for {r.target!r} at scale {scale:.3f} m: HDBSCAN found "
-                           f"{len(groups.centres)} groups and none held the most relevant pixel's feature")
-            return res
-        res.success = True
-        res.confidence = res.objects[0].confidence
-        res.message = (f"{len(res.objects)} group(s) for {r.target!r}, {len(res.objects[0].gaussian_ids)} Gaussians; "
-                       f"reference view {kf.index}, scale {scale:.3f} m")
-        res.explanation = (f"{r.explanation} Reference view {kf.index} (mask similarity {msim:.2f}); scale "
-                           f"{scale:.3f} m; the most relevant pixel ({px}, {py}, relevancy {peak_rel:.2f}) lies in "
-                           f"a group of {len(res.objects[0].gaussian_ids)} Gaussians.")
-        return res
+        return self.reasoner.reason(query, vocab, image=image, mode=mode)
 
     @torch.no_grad()
     def relevancy_view(self, target: str, scale: float, K, cam_to_world, width: int, height: int):
@@ -496,27 +362,6 @@ class Grounder:
         rel = relevancy_pca(self.field.language(fr.latent[window], scale), pca.components, pca.mean,
                             self.encode([target])[0], self.encode(list(CANONICAL)))
         return torch.where(alpha > self.gcfg.mask_alpha, rel, torch.zeros_like(rel))
-
-    def _more_instances(self, groups: Groups, order: list[int], target, canon, scale, k: int) -> list[int]:
-        """Other groups as relevant as the best one ("the cups"): relevancy of each group's mean latent."""
-        lat = self.field.latents
-        labels = torch.from_numpy(groups.labels)
-        scores = []
-        for gi in order:
-            members = labels == gi
-            if not bool(members.any()):
-                scores.append(0.0)
-                continue
-            z = self.field.language(lat[members].mean(0), scale)
-            scores.append(float(relevancy(self._decompress(z), target, canon)))
-        best = scores[0]
-        chosen = [order[0]]
-        for gi, s in sorted(zip(order[1:], scores[1:]), key=lambda x: -x[1]):
-            if len(chosen) >= k:
-                break
-            if s >= self.gcfg.multi_instance_ratio * best and s > 0.5:
-                chosen.append(gi)
-        return chosen
 
     # ------------------------------------------------------------------------------ masks
 

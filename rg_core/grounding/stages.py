@@ -1,0 +1,226 @@
+"""The stages of a query after reasoning, each with a small typed result (Grounder._ground runs
+them in the paper's order): reference view and scale s* -> the most relevant pixel -> the groups of
+instance features at s* -> mask votes, the piece in space and the boxes."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..geometry.conventions import pixels_to_points
+from .boxes import connected_to, group_boxes, robust_inliers
+from .carve import MaskView, mask_votes
+from .grouping import Groups
+from .relevancy import CANONICAL, relevancy
+from .result import GroundedObject
+
+
+@dataclass
+class MaskCandidate:
+    """A keyframe's supervision mask most similar to the target text."""
+
+    similarity: float
+    pixels: int
+    keyframe: object     # rg_core.map Keyframe
+    index: int           # mask index in the keyframe's supervision
+    scale: float         # the mask's physical scale (m)
+
+
+@dataclass
+class Reference:
+    """The reference view: the keyframe and mask most like the target, and the target scale s*."""
+
+    target: torch.Tensor            # [D] embedding of the target name
+    candidates: list[MaskCandidate]
+    keyframe: object
+    mask_index: int
+    similarity: float
+    scale: float
+    mask: torch.Tensor              # [H, W] bool, the reference mask
+
+
+@dataclass
+class Peak:
+    """The most relevant pixel of the reference view and what lies there."""
+
+    render: object                  # the field render of the reference keyframe
+    px: int
+    py: int
+    relevancy: float
+    instance: torch.Tensor          # [Di] instance feature at (px, py) and s*
+    anchor: np.ndarray              # [3] world point of the rendered surface there
+    has_depth: bool                 # the render has depth at the pixel (anchor is meaningful)
+
+
+def mask_candidates(g, target: torch.Tensor) -> list[MaskCandidate]:
+    """Per keyframe, its mask most similar to the target text [D]."""
+    by_index = {kf.index: kf for kf in g.mapper.keyframes}
+    out = []
+    for k, sup in g.mapper.supervision.by_keyframe.items():
+        if k not in by_index or not len(sup.embeddings):
+            continue
+        sims = torch.nn.functional.normalize(sup.embeddings.float(), dim=-1) @ target
+        i = int(sims.argmax())
+        out.append(MaskCandidate(float(sims[i]), int(sup.masks[i].sum()), by_index[k], i, float(sup.scales[i])))
+    return out
+
+
+def reference(g, name: str) -> Reference | str:
+    """The keyframe whose mask embedding is most like `name` (among near-ties the one that sees it
+    largest) and that mask's scale s*; a message when no mask is similar enough."""
+    target = g.encode([name])[0]
+    cands = mask_candidates(g, target)
+    if not cands:
+        return f"no part of the map looks like {name!r}: best mask similarity -2.00 < {g.gcfg.min_mask_similarity}"
+    top = max(c.similarity for c in cands)
+    best = max((c for c in cands if c.similarity >= top - 0.02), key=lambda c: c.pixels)
+    if best.similarity < g.gcfg.min_mask_similarity:
+        return (f"no part of the map looks like {name!r}: best mask similarity {best.similarity:.2f} "
+                f"< {g.gcfg.min_mask_similarity}")
+    mask = torch.from_numpy(g.mapper.supervision.by_keyframe[best.keyframe.index].masks[best.index])
+    return Reference(target, cands, best.keyframe, best.index, best.similarity, best.scale, mask)
+
+
+def peak(g, ref: Reference, name: str) -> Peak:
+    """The peak of the 3x3 mean relevancy, inside the reference mask where it has rendered pixels
+    (features bleed a pixel or two over borders). Relevancy is computed over the mask's box grown
+    by 2 pixels only: the same peak as over the whole view, in a fraction of the time."""
+    kf = ref.keyframe
+    w, h = kf.size
+    fr = g.render_keyframe(kf)
+    in_mask = ref.mask.shape == (h, w) and bool((ref.mask & (fr.alpha > g.gcfg.mask_alpha)).any())
+    y0, y1, x0, x1 = 0, h, 0, w
+    if in_mask:
+        ys, xs = torch.nonzero(ref.mask, as_tuple=True)
+        y0, y1 = max(int(ys.min()) - 2, 0), min(int(ys.max()) + 3, h)
+        x0, x1 = max(int(xs.min()) - 2, 0), min(int(xs.max()) + 3, w)
+    rel = g._relevancy(fr, name, ref.scale, (slice(y0, y1), slice(x0, x1)))   # [y1-y0, x1-x0]
+    smooth = torch.nn.functional.avg_pool2d(rel[None, None], 3, 1, 1, count_include_pad=False)[0, 0]
+    if in_mask:
+        smooth = torch.where(ref.mask[y0:y1, x0:x1], smooth, torch.full_like(smooth, -1.0))
+    py, px = divmod(int(smooth.reshape(-1).argmax()), x1 - x0)
+    value = float(rel[py, px])
+    py, px = py + y0, px + x0
+    z = float(fr.depth[py, px] / fr.alpha[py, px].clamp(min=1e-6))          # the surface there
+    anchor = pixels_to_points(px, py, z, np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64))
+    return Peak(fr, px, py, value, g.field.instance(fr.latent[py, px], ref.scale), anchor, z > 0)
+
+
+def candidate_groups(g, ref: Reference, pk: Peak, max_results: int) -> tuple[Groups, list[tuple[np.ndarray, float]]]:
+    """HDBSCAN groups at s* (near the reference mask when one object is sought) and the candidate
+    member sets with their feature similarity: the group holding the peak's instance feature first;
+    when no group holds it (HDBSCAN left that object as noise), the Gaussians around that feature."""
+    region = (g.region(ref.keyframe, ref.mask.numpy(), pk.render.depth, pk.render.alpha, ref.scale)
+              if max_results == 1 else None)
+    groups = g.groups(ref.scale, region)
+    sim = groups.centres @ pk.instance                                          # [G]
+    order = torch.argsort(sim, descending=True).tolist()
+    home = groups.containing(pk.instance)
+    if home >= 0:
+        order.remove(home)
+        order.insert(0, home)
+    chosen = [order[0]] if order else []
+    if max_results > 1 and order:
+        chosen = more_instances(g, groups, order, ref.target, g.encode(list(CANONICAL)), ref.scale, max_results)
+    found = []
+    if home < 0:
+        # Too few Gaussians around the feature (a weakly trained field): the nearest cluster, or with
+        # no cluster at all the 2 x min_cluster_size Gaussians nearest that feature.
+        ball = groups.ball(pk.instance)
+        mcs = g.gcfg.min_cluster_size
+        if len(ball) >= mcs:
+            found.append((ball, float(sim.max()) if len(sim) else 1.0))
+            chosen = chosen[1:] if max_results > 1 else []
+        elif not chosen and groups.features is not None and len(groups.features):
+            d = groups.features @ torch.nn.functional.normalize(pk.instance.float(), dim=-1)
+            near = torch.topk(d, min(2 * mcs, len(d))).indices.numpy()
+            found.append((np.sort(near), float(d[near].mean())))
+    found += [(groups.members(gi, grow=g.gcfg.grow_groups), float(max(sim[gi], 0.0))) for gi in chosen]
+    return groups, found
+
+
+def more_instances(g, groups: Groups, order: list[int], target, canon, scale, k: int) -> list[int]:
+    """Other groups as relevant as the best one ("the cups"): relevancy of each group's mean latent."""
+    lat = g.field.latents
+    labels = torch.from_numpy(groups.labels)
+    scores = []
+    for gi in order:
+        members = labels == gi
+        if not bool(members.any()):
+            scores.append(0.0)
+            continue
+        z = g.field.language(lat[members].mean(0), scale)
+        scores.append(float(relevancy(g._decompress(z), target, canon)))
+    best = scores[0]
+    chosen = [order[0]]
+    for gi, s in sorted(zip(order[1:], scores[1:]), key=lambda x: -x[1]):
+        if len(chosen) >= k:
+            break
+        if s >= g.gcfg.multi_instance_ratio * best and s > 0.5:
+            chosen.append(gi)
+    return chosen
+
+
+def carve_views(g, cands: list[MaskCandidate]) -> list[MaskView]:
+    """The target's masks in up to `carve_views` keyframes: those whose best mask is about as
+    similar to the target as the best one (the same object seen again), largest first."""
+    n = g.gcfg.carve_views
+    if n <= 0 or not cands:
+        return []
+    top = max(c.similarity for c in cands)
+    near = sorted((c for c in cands if c.similarity >= max(top - 0.02, g.gcfg.min_mask_similarity)),
+                  key=lambda c: -c.pixels)
+    out = []
+    for c in near[:n]:
+        kf = c.keyframe
+        mask = g.mapper.supervision.by_keyframe[kf.index].masks[c.index]
+        if mask.shape == tuple(kf.depth.shape):
+            out.append(MaskView(np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64),
+                                kf.depth.numpy(), mask))
+    return out
+
+
+def objects(g, ref: Reference, pk: Peak, found: list[tuple[np.ndarray, float]], max_results: int,
+            confidence: float) -> list[GroundedObject]:
+    """Each candidate set voted on by the target's masks (carve what they see elsewhere; the first
+    set also takes what several see inside), cut to its piece in space (the first: the piece the
+    reference mask sees most, else the one under the peak), outliers dropped, boxed."""
+    gs = g.mapper.gaussians
+    means, colors = gs.means.detach().numpy(), (gs.colors.detach().clamp(0, 1) * 255).round().byte().numpy()
+    kf = ref.keyframe
+    link = g.gcfg.link_spacing * g.spacing()
+    views = carve_views(g, ref.candidates)
+    ref_view = None
+    if g.gcfg.anchor_support and ref.mask.shape == tuple(kf.depth.shape):
+        ref_view = MaskView(np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64),
+                            kf.depth.numpy(), ref.mask.numpy())
+    carved = voted = None
+    border = g.vote_border() if views or ref_view is not None else 0
+    if views:   # votes only where they can matter: the groups and what lies within 4 s* of the peak
+        near = (np.nonzero(np.linalg.norm(means - pk.anchor, axis=1) <= 4 * ref.scale)[0] if pk.has_depth
+                else np.zeros(0, np.int64))
+        cand = np.unique(np.concatenate([ids for ids, _ in found[:max_results]] + [near]).astype(np.int64))
+        v = mask_votes(means[cand], views, gs.scales.detach()[torch.from_numpy(cand)].max(1).values.numpy(),
+                       border_px=border)
+        carved, voted = np.zeros(len(means), bool), np.zeros(len(means), bool)
+        carved[cand], voted[cand] = v.carved(g.gcfg.min_mask_votes), v.voted(g.gcfg.min_mask_votes)
+    out = []
+    for n, (ids, s_g) in enumerate(found[:max_results]):
+        if carved is not None:
+            ids = ids[~carved[ids]]
+            if n == 0:
+                ids = np.union1d(ids, np.nonzero(voted)[0])
+        if link > 0 and len(ids) > 1:
+            support = None
+            if n == 0 and ref_view is not None:
+                support = mask_votes(means[ids], [ref_view], gs.scales.detach()[torch.from_numpy(ids)]
+                                     .max(1).values.numpy(), border_px=border).inside > 0
+            ids = ids[connected_to(means[ids], pk.anchor if n == 0 and pk.has_depth else None, link, support)]
+        ids = ids[robust_inliers(means[ids], g.gcfg.outlier_mads)]
+        if not len(ids):
+            continue
+        lo, hi, c, R, ext = group_boxes(means[ids])
+        out.append(GroundedObject(ids.astype(np.int64), means[ids].astype(np.float32), colors[ids], lo, hi, c, R,
+                                  ext, float(confidence) * pk.relevancy * s_g))
+    return out
