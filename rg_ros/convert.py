@@ -23,7 +23,6 @@ from rg_core.io.ros_images import image_array as _image_array
 
 from .pointcloud import to_pointcloud2
 
-MODES = ("auto", "explicit", "implicit")
 QUAT_NORM_TOL = 1e-2   # |norm - 1| above this is a broken quaternion, not rounding
 
 
@@ -186,14 +185,6 @@ def matrix_to_pose(T: np.ndarray) -> Pose:
 
 
 # ------------------------------------------------------------------------------- grounding
-
-def parse_mode(mode: str) -> str:
-    """Ground request mode -> one of MODES ('' means auto)."""
-    m = (mode or "").strip().lower() or "auto"
-    if m not in MODES:
-        raise ValueError(f"mode '{mode}' is not one of {', '.join(MODES)} (empty = auto)")
-    return m
-
 
 def _vec(v, cls):
     v = np.asarray(v, dtype=np.float64).reshape(3)

@@ -24,6 +24,7 @@ from visualization_msgs.msg import MarkerArray
 
 from rg_core.geometry.tf_buffer import TFBuffer, TFError
 from rg_core.grounding.result import GroundingResult
+from rg_core.perception.query import parse_mode, query_problem
 
 from . import convert as cv
 from .markers import result_markers
@@ -326,18 +327,15 @@ class GroundingNode(Node):
         p = self.p
         query = request.query
         t = time.perf_counter()
-        if not query.strip():
-            result = GroundingResult(False, "empty query: say what to find, e.g. 'the red mug'")
-        elif len(query) > p.max_query_chars:
-            result = GroundingResult(False, f"query is {len(query)} characters, at most {p.max_query_chars} "
-                                            "are accepted (parameter max_query_chars)")
+        problem = query_problem(query, p.max_query_chars)   # the node's own limit (a parameter)
+        try:
+            mode = parse_mode(request.mode)
+        except ValueError as exc:
+            problem = problem or str(exc)
+        if problem:
+            result = GroundingResult(False, problem, query=query[:200])
         else:
-            try:
-                mode = cv.parse_mode(request.mode)
-            except ValueError as exc:
-                result = GroundingResult(False, str(exc), query=query)
-            else:
-                result = self.worker.ground(query, mode, int(request.max_results) or p.max_results, p.ground_timeout)
+            result = self.worker.ground(query, mode, int(request.max_results) or p.max_results, p.ground_timeout)
         stamp = self._stamp_now()
         try:
             response = cv.result_to_response(result, p.map_frame, stamp, response=response)

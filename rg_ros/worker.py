@@ -27,6 +27,7 @@ import numpy as np
 
 from rg_core.config import RGConfig
 from rg_core.grounding.result import GroundingResult
+from rg_core.perception.query import query_problem
 from rg_core.map.frames import FrameError
 from rg_core.map.mapper import Mapper
 
@@ -316,8 +317,9 @@ class MapWorker:
 
     def ground(self, query: str, mode: str = "auto", max_results: int = 1, timeout: float = 30.0) -> GroundingResult:
         """Ground `query` in the current map; never raises (failures are unsuccessful results)."""
-        if not query.strip():
-            return GroundingResult(False, "empty query", query=query)
+        problem = query_problem(query, self.cfg.ground.max_query_chars)
+        if problem:
+            return GroundingResult(False, problem, query=str(query)[:200])
         if not self.mapper.keyframes:
             return GroundingResult(False, "map is empty: no keyframes yet (send frames first)", query=query)
         try:

@@ -244,10 +244,12 @@ def test_stamps():
 
 
 def test_parse_mode():
-    assert cv.parse_mode("") == "auto" and cv.parse_mode(" Implicit ") == "implicit"
-    assert cv.parse_mode("explicit") == "explicit"
+    from rg_core.perception.query import parse_mode
+
+    assert parse_mode("") == "auto" and parse_mode(" Implicit ") == "implicit"
+    assert parse_mode("explicit") == "explicit"
     with pytest.raises(ValueError, match="'fuzzy'"):
-        cv.parse_mode("fuzzy")
+        parse_mode("fuzzy")
 
 
 # -------------------------------------------------------------------------------- PointCloud2

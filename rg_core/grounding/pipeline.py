@@ -21,6 +21,7 @@ from .cache import MapCache
 from .carve import mask_depth_offsets, registration_border
 from .grouping import Groups, cluster_instances
 from .relevancy import CANONICAL, relevancy_pca
+from ..perception.query import parse_mode, query_problem
 from .result import GroundingResult
 from .vocabulary import build_vocabulary, looks_like_name
 
@@ -186,15 +187,6 @@ class Grounder:
             return "the feature field has not been trained yet"
         return None
 
-    def _check_query(self, query) -> str | None:
-        if not isinstance(query, str):
-            return f"query must be a string, got {type(query).__name__}"
-        if not query.strip():
-            return "empty query: say what to find, e.g. 'coffee mug'"
-        if len(query) > self.gcfg.max_query_chars:
-            return f"query is {len(query)} characters long; at most {self.gcfg.max_query_chars} are accepted"
-        return None
-
     # ------------------------------------------------------------------------------ map-derived data
 
     def groups(self, scale: float, region: np.ndarray | None = None) -> Groups:
@@ -288,11 +280,13 @@ class Grounder:
 
     def _ground(self, query: str, mode: str, max_results: int) -> GroundingResult:
         t0 = time.perf_counter()
-        bad = self._check_query(query)
+        bad = query_problem(query, self.gcfg.max_query_chars)
         if bad:
             return GroundingResult(False, bad, query=str(query)[:200])
-        if mode not in ("auto", "explicit", "implicit"):
-            return GroundingResult(False, f"mode must be auto, explicit or implicit, got {mode!r}", query=query)
+        try:
+            mode = parse_mode(mode)
+        except ValueError as exc:
+            return GroundingResult(False, str(exc), query=query)
         if max_results < 1:
             return GroundingResult(False, f"max_results must be >= 1, got {max_results}", query=query)
         not_ready = self._not_ready()

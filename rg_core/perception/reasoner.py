@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from .masks import BackendError
+from .query import check_query, parse_mode
 from .text_cache import CachedText, embed_cached, inner_encoder
 
 log = logging.getLogger(__name__)
@@ -48,7 +49,6 @@ log = logging.getLogger(__name__)
 FIT = {"name_weight": 0.5, "min_similarity": 0.0, "absent_margin": 0.35, "background_exclude": 0.6,
        "prior_trust": 0.4}
 
-MODES = ("auto", "explicit", "implicit")
 NAME_TEMPLATE = "a {}"          # measured: 57/101 top-1 vs 51/101 for bare names
 EXPLICIT_SIMILARITY = 0.80      # bare query vs bare name; implicit descriptions reach 0.69
 EXPLICIT_MAX_EXTRA = 3          # words besides a contained name ("pick up the apple on the left")
@@ -75,16 +75,8 @@ class Reasoning:
 def validate(query: str, vocabulary: list[str], max_query_chars: int = 1000, mode: str = "auto") -> list[str]:
     """Reject unusable input with a message saying what was expected; returns the clean vocabulary
     (stripped, de-duplicated, order kept)."""
-    if not isinstance(query, str):
-        raise ValueError(f"query must be a string, got {type(query).__name__}")
-    if not query.strip():
-        raise ValueError("query is empty: expected a description or the name of an object")
-    if len(query) > max_query_chars:
-        raise ValueError(f"query has {len(query)} characters, more than max_query_chars={max_query_chars}")
-    if not any(c.isalnum() for c in query):
-        raise ValueError(f"query holds no letters or digits ({query[:20]!r}): expected a description or a name")
-    if mode not in MODES:
-        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    check_query(query, max_query_chars)
+    parse_mode(mode)
     if isinstance(vocabulary, str):
         raise ValueError("vocabulary must be a list of object names, got a single string")
     clean = list(dict.fromkeys(v.strip() for v in vocabulary if isinstance(v, str) and v.strip()))
