@@ -334,7 +334,7 @@ class MapWorker:
                 self.field = FeatureField(self.mapper, self.cfg.field)
             if self._grounder is None:
                 text = self._perception[1].encode_texts if self._perception is not None else None  # the map's space
-                self._grounder = Grounder(self.mapper, self.field, self.cfg, text_encoder=text)
+                self._grounder = Grounder.from_map(self.mapper, self.cfg, field=self.field, text_encoder=text)
             return self._grounder.ground(query, mode=mode, max_results=max_results)
         except ImportError as exc:   # a stage of the pipeline (reasoner, text encoder) has not landed
             self.log.error("grounding '%s': %s", query[:80], exc)

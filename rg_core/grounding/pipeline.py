@@ -78,6 +78,22 @@ class Grounder:
 
             remember(sset.text_embeddings)  # the map's stored name embeddings: no text model for them
 
+    @classmethod
+    def from_map(cls, mapper, cfg: RGConfig | None = None, field=None, text_encoder=None, reasoner=None,
+                 scene_names: list[str] | None = None, source: str = "the map") -> "Grounder":
+        """The one way callers assemble a Grounder (rg ground, rg map, the node's worker, build.py):
+        over `mapper` and its field (or `field`). With a text encoder, the map's mask embeddings
+        must have its width: a map built with another preset cannot be queried (ValueError)."""
+        sset = getattr(mapper, "supervision", None)
+        embs = [s.embeddings for s in sset.by_keyframe.values() if len(s.embeddings)] if sset is not None else []
+        if text_encoder is not None and embs:
+            d_map, d_text = embs[0].shape[-1], text_encoder(["x"]).shape[-1]
+            if d_map != d_text:
+                raise ValueError(f"{source}: the map's embeddings are {d_map}-d, the text encoder embeds queries in "
+                                 f"{d_text}-d: ground with the preset the map was built with")
+        return cls(mapper, field if field is not None else getattr(mapper, "field", None), cfg, reasoner=reasoner,
+                   text_encoder=text_encoder, scene_names=scene_names)
+
     # ------------------------------------------------------------------------------ models
 
     @property
