@@ -14,6 +14,9 @@ from typing import Any
 
 import yaml
 
+# Where the project keeps what it derives once per machine (embeddings, fixed URDFs; models/ below it).
+CACHE_DIR = "~/.cache/reasongrounder"
+
 
 class ConfigError(ValueError):
     """A configuration file or dict does not match the schema; the message names the key."""
@@ -291,7 +294,7 @@ class ReasonConfig:
     (rg_core/perception/data/domain_prior.json, logistic regression fit on the tune half)."""
     prior_trust: float = 0.4
     """... only when the best text score is below this (fit: 0.4)."""
-    cache_dir: str = "~/.cache/reasongrounder"
+    cache_dir: str = CACHE_DIR
     """Disk cache of the fixed embeddings (background concepts, ConSE classes); empty = none."""
     llm_scorer: bool = False
     """Ensemble: add a local LLM's per-name log-likelihoods (rg_core/perception/llm_scorer.py:

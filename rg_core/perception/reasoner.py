@@ -38,6 +38,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from ..config import CACHE_DIR
 from .masks import BackendError
 from .query import check_query, parse_mode
 from .text_cache import CachedText, embed_cached, inner_encoder
@@ -224,7 +225,7 @@ class TextReasoner(Reasoner):
                  absent_margin: float = FIT["absent_margin"], max_query_chars: int = 1000,
                  extra_vocabulary: list[str] | tuple[str, ...] = (), text_model=None,
                  name_weight: float = FIT["name_weight"], background_exclude: float = FIT["background_exclude"],
-                 use_knowledge: bool = True, knowledge_path: str = "", cache_dir: str = "~/.cache/reasongrounder",
+                 use_knowledge: bool = True, knowledge_path: str = "", cache_dir: str = CACHE_DIR,
                  llm_scorer=None, llm_weight: float = 0.0, domain_prior: bool = True, domain_prior_path: str = "",
                  prior_trust: float = FIT["prior_trust"]):
         if not 0.0 <= name_weight <= 1.0:
