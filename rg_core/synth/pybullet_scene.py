@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..geometry.conventions import CV_FROM_GL
 from ..config import CACHE_DIR
+from ..geometry.conventions import CV_FROM_GL
 
 
 @dataclass(frozen=True)
