@@ -16,8 +16,7 @@ from std_msgs.msg import Header
 from rg_core.geometry.conventions import PoseError, check_rigid
 from rg_core.grounding.result import GroundedObject as CoreObject
 from rg_core.grounding.result import GroundingResult
-
-from rg_core.io.ros_images import COLOR_ENCODINGS, DEPTH_ENCODINGS, ENCODINGS  # noqa: F401 (re-exported)
+from rg_core.io.ros_images import ENCODINGS
 from rg_core.io.ros_images import _unsupported, decode_color, decode_depth
 from rg_core.io.ros_images import image_array as _image_array
 

@@ -24,13 +24,13 @@ from visualization_msgs.msg import MarkerArray
 
 from rg_core.geometry.tf_buffer import TFBuffer, TFError
 from rg_core.grounding.result import GroundingResult
+from rg_core.io.sync import ApproximateTimeSync, SyncedSet
 from rg_core.perception.query import parse_mode, query_problem
 
 from . import convert as cv
 from .markers import result_markers
 from .params import DIAGNOSTICS_TOPIC, GROUND_SERVICE, NODE_NAME, NodeParams, check_unknown_params, declare_params
 from .pointcloud import to_pointcloud2
-from .sync import ApproximateTimeSync, SyncedSet
 from .worker import Frame, MapWorker, WorkerConfig
 
 # qos_overrides./<topic>.<publisher|subscription>.{history,depth,reliability} parameters for every topic

@@ -17,6 +17,7 @@ from rclpy.serialization import deserialize_message, serialize_message  # noqa: 
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField  # noqa: E402
 
 from rg_core.geometry.conventions import PoseError, look_at  # noqa: E402
+from rg_core.io.ros_images import COLOR_ENCODINGS  # noqa: E402
 from rg_ros import convert as cv  # noqa: E402
 from rg_ros.pointcloud import from_pointcloud2, to_pointcloud2  # noqa: E402
 
@@ -61,7 +62,7 @@ def test_to_image_round_trips_every_encoding(encoding):
     assert msg.step == 4 * ch * np.dtype(dtype).itemsize and len(msg.data) == msg.step * 6
     assert msg.header.frame_id == "cam" and cv.from_time(msg.header.stamp) == 3.25
     msg = deserialize_message(serialize_message(msg), Image)
-    if encoding in cv.COLOR_ENCODINGS:
+    if encoding in COLOR_ENCODINGS:
         want = arr[..., :3][..., ::-1] if encoding.startswith("bgr") else arr[..., :3]
         np.testing.assert_array_equal(cv.image_to_rgb(msg), want)
     elif encoding == "16UC1":
