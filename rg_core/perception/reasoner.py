@@ -1,28 +1,12 @@
-"""Reasoning backends: a query (+ optional reference image) -> the name of the target object.
-
-Issue 15 (2026-11-24): the text reasoner now also compares the query with each name's WordNet
-knowledge text, rejects with a logistic open-set prior, and takes an optional LLM term; its
-weights and thresholds (FIT below) come from the tune half of the description set
-(benchmarks/bench_reasoning.py). The history below is how the name-only version was tuned.
+"""Reasoning backends: a query (+ optional scene image) -> the name of the target object.
 
 ReasonGrounder hands implicit queries ("something to drink hot tea from") to an LVLM that names
 the object; the name is then grounded in the feature field. The offline default "text" replaces
-the LVLM with the packaged sentence model (MiniLM): the nearest vocabulary name wins. Explicit
-queries (they name a vocabulary entry) pass straight through.
-
-Thresholds below were measured on the synthetic catalogue (rg_core/synth/catalogue.py: 38 names,
-101 distinct implicit descriptions) and 25 absent things ("a giraffe", "the moon", ...):
-- explicit detection is rule-based (normalised exact / head-noun / contained name); similarity
-  alone cannot separate the two kinds (implicit descriptions reach 0.69 to their name, "the apples"
-  only 0.65), so the similarity rule only catches near-identical spellings (>= 0.80).
-- implicit top-1 (category of the nearest name, names embedded as "a {name}"): 57/101 before
-  absent rejection (bare names 51/101).
-- absent things: the best similarity alone cannot reject them (giraffe -> "teddy bear" 0.50,
-  implicit descriptions range 0.30-0.69), so a query is also rejected when a background name
-  (ImageNet-1k classes + COCO categories) unlike every vocabulary name (similarity < 0.6 to all of
-  them) beats the best vocabulary name by more than `absent_margin` (0.15): 23/25 absent things
-  rejected (20 held-out ones: 14/20), 9/101 implicit descriptions rejected; top-1 54/101.
-  `min_similarity` (0.30) is an absolute floor under that.
+the LVLM with a packaged sentence model: each vocabulary name is scored by the similarity of the
+query to the name and to the name's WordNet knowledge text; an open-set prior and background
+concepts (ImageNet/COCO) reject queries nothing in the vocabulary fits. Weights and thresholds (FIT)
+come from the tune half of the description set (benchmarks/bench_reasoning.py --fit). Explicit
+queries (they name a vocabulary entry, by rule) pass straight through.
 """
 from __future__ import annotations
 
