@@ -24,6 +24,7 @@ from visualization_msgs.msg import MarkerArray
 
 from rg_core.geometry.tf_buffer import TFBuffer, TFError
 from rg_core.grounding.result import GroundingResult
+from rg_core.io.ros_images import camera_info_K
 from rg_core.io.sync import ApproximateTimeSync, SyncedSet
 from rg_core.perception.query import parse_mode, query_problem
 
@@ -216,7 +217,7 @@ class GroundingNode(Node):
             return self._warn("size", f"frame rejected: colour is {rgb.shape[1]}x{rgb.shape[0]} but depth is "
                               f"{d.shape[1]}x{d.shape[0]} (depth must be registered to the colour image)")
         try:
-            K, (w, h) = cv.camera_info_to_K(info)
+            K, (w, h) = camera_info_K(info)
         except ValueError as exc:
             return self._warn("camera_info_bad", f"frame rejected: {exc}")
         if (w, h) != (rgb.shape[1], rgb.shape[0]):
