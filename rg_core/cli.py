@@ -153,7 +153,7 @@ def cmd_map(args, cfg) -> dict:
         from .grounding.pipeline import Grounder
 
         # Name embeddings stored with the map: a later `rg ground` embeds only its query.
-        report["stored_texts"] = Grounder(mapper, getattr(mapper, "field", None), cfg).store_texts()
+        report["stored_texts"] = Grounder.from_map(mapper, cfg).store_texts()
     elif args.train_field:
         raise ValueError("--train-field needs --supervise (the field trains on the 2D supervision)")
     report["map"] = str(save_map(mapper, args.out))
@@ -234,12 +234,8 @@ def cmd_ground(args, cfg) -> dict:
     mapper = load_map(args.map)
     if getattr(mapper, "field", None) is None:
         raise ValueError(f"{args.map}: the map has no feature field; build it with rg map --supervise --train-field S")
-    sset = mapper.supervision
-    embs = [s.embeddings for s in sset.by_keyframe.values() if len(s.embeddings)] if sset is not None else []
-    if text is not None and embs and text(["x"]).shape[-1] != embs[0].shape[-1]:
-        raise ValueError(f"{args.map}: the map's embeddings are {embs[0].shape[-1]}-d, preset {preset!r} embeds "
-                         f"queries in {text(['x']).shape[-1]}-d: ground with the preset the map was built with")
-    grounder = Grounder(mapper, mapper.field, cfg, text_encoder=text, scene_names=args.name or [])
+    grounder = Grounder.from_map(mapper, cfg, text_encoder=text, scene_names=args.name or [],
+                                 source=f"{args.map} (preset {preset!r})")
     res = grounder.ground(args.query, mode=args.mode, max_results=args.max_results)
     out = res.to_json()
     if res.success and (args.out or args.view is not None or args.pose):

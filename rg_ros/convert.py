@@ -10,22 +10,18 @@ import math
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion, Vector3
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
 from rg_core.geometry.conventions import PoseError, check_rigid
+from rg_core.geometry.rotations import checked_quat_to_rot, rot_to_quat
 from rg_core.grounding.result import GroundedObject as CoreObject
 from rg_core.grounding.result import GroundingResult
-
-from rg_core.io.ros_images import COLOR_ENCODINGS, DEPTH_ENCODINGS, ENCODINGS  # noqa: F401 (re-exported)
+from rg_core.io.ros_images import ENCODINGS
 from rg_core.io.ros_images import _unsupported, decode_color, decode_depth
 from rg_core.io.ros_images import image_array as _image_array
 
 from .pointcloud import to_pointcloud2
-
-MODES = ("auto", "explicit", "implicit")
-QUAT_NORM_TOL = 1e-2   # |norm - 1| above this is a broken quaternion, not rounding
-
 
 # ----------------------------------------------------------------------------------- time
 
@@ -106,62 +102,7 @@ def depth_to_image(depth: np.ndarray, frame_id: str = "", stamp: float | Time | 
     return to_image(np.asarray(depth, dtype=np.float32), "32FC1", frame_id, stamp)
 
 
-# ------------------------------------------------------------------------------ intrinsics
-
-def camera_info_to_K(msg: CameraInfo) -> tuple[np.ndarray, tuple[int, int]]:
-    """CameraInfo -> (K [3, 3] float64 OpenCV pixel coordinates, (width, height))."""
-    if msg.width == 0 or msg.height == 0:
-        raise ValueError(f"CameraInfo: image size {msg.width}x{msg.height} is empty")
-    K = np.asarray(msg.k, dtype=np.float64).reshape(3, 3)
-    if not np.isfinite(K).all():
-        raise ValueError("CameraInfo: K contains NaN or inf")
-    if K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ValueError(f"CameraInfo: focal lengths must be > 0, got fx={K[0, 0]}, fy={K[1, 1]} "
-                         "(an all-zero K means the camera is uncalibrated)")
-    if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0:
-        raise ValueError(f"CameraInfo: K is not a pinhole matrix: {K.tolist()}")
-    return K, (int(msg.width), int(msg.height))
-
-
 # ----------------------------------------------------------------------------------- poses
-
-def quat_to_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
-    """Unit quaternion -> rotation [3, 3]; normalises, rejects NaN and norms far from 1."""
-    q = np.array([x, y, z, w], dtype=np.float64)
-    if not np.isfinite(q).all():
-        raise PoseError(f"quaternion contains NaN or inf: {q.tolist()}")
-    n = float(np.linalg.norm(q))
-    if abs(n - 1.0) > QUAT_NORM_TOL:
-        raise PoseError(f"quaternion norm is {n:.4g}, expected 1 (x, y, z, w = {q.tolist()})")
-    x, y, z, w = q / n
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
-def matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    """Rotation [3, 3] -> quaternion [x, y, z, w] with w >= 0 (Shepperd's method; nearest rotation first)."""
-    R = np.asarray(R, dtype=np.float64)
-    U, _, Vt = np.linalg.svd(R)   # project a slightly non-orthonormal matrix (PCA, float32) onto SO(3)
-    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-    t = np.trace(R)
-    if t > 0:
-        s = 2.0 * math.sqrt(1.0 + t)
-        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
-        q = [0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
-    elif R[1, 1] > R[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
-        q = [(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
-    else:
-        s = 2.0 * math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
-        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s, (R[1, 0] - R[0, 1]) / s]
-    q = np.array(q)
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
-
 
 def pose_to_matrix(pose: Pose | PoseStamped) -> np.ndarray:
     """Pose (of an optical frame in the map frame) -> cam_to_world [4, 4] float64."""
@@ -172,7 +113,7 @@ def pose_to_matrix(pose: Pose | PoseStamped) -> np.ndarray:
     if not np.isfinite(t).all():
         raise PoseError(f"position contains NaN or inf: {t.tolist()}")
     T = np.eye(4)
-    T[:3, :3] = quat_to_matrix(o.x, o.y, o.z, o.w)
+    T[:3, :3] = checked_quat_to_rot([o.x, o.y, o.z, o.w])
     T[:3, 3] = t
     return T
 
@@ -180,20 +121,12 @@ def pose_to_matrix(pose: Pose | PoseStamped) -> np.ndarray:
 def matrix_to_pose(T: np.ndarray) -> Pose:
     """Rigid [4, 4] -> Pose; raises PoseError for anything that is not a rigid transform."""
     T = check_rigid(T, "cam_to_world")
-    x, y, z, w = matrix_to_quat(T[:3, :3])
+    x, y, z, w = rot_to_quat(T[:3, :3])
     return Pose(position=Point(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
                 orientation=Quaternion(x=float(x), y=float(y), z=float(z), w=float(w)))
 
 
 # ------------------------------------------------------------------------------- grounding
-
-def parse_mode(mode: str) -> str:
-    """Ground request mode -> one of MODES ('' means auto)."""
-    m = (mode or "").strip().lower() or "auto"
-    if m not in MODES:
-        raise ValueError(f"mode '{mode}' is not one of {', '.join(MODES)} (empty = auto)")
-    return m
-
 
 def _vec(v, cls):
     v = np.asarray(v, dtype=np.float64).reshape(3)
@@ -212,7 +145,7 @@ def object_to_msg(obj: CoreObject):
         raise ValueError(f"GroundedObject: OBB rotation is not orthonormal (max |R^T R - I| = {err:.3g})")
     if np.linalg.det(R) < 0:   # a reflected frame describes the same box; make it a rotation
         R = R * np.array([1.0, 1.0, -1.0])
-    x, y, z, w = matrix_to_quat(R)
+    x, y, z, w = rot_to_quat(R)
     return GroundedObject(
         pose=Pose(position=_vec(obj.obb_center, Point), orientation=Quaternion(x=float(x), y=float(y), z=float(z), w=float(w))),
         size=_vec(obj.obb_extent, Vector3), gaussian_count=int(len(obj.gaussian_ids)),

@@ -12,9 +12,8 @@ from geometry_msgs.msg import Point, Pose, Quaternion, Vector3
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
+from rg_core.geometry.rotations import rot_to_quat
 from rg_core.grounding.result import GroundingResult
-
-from .convert import matrix_to_quat
 
 NS = "rg_grounding"
 PALETTE = [(0.12, 0.47, 0.71), (1.0, 0.5, 0.05), (0.17, 0.63, 0.17), (0.84, 0.15, 0.16), (0.58, 0.4, 0.74),
@@ -50,7 +49,7 @@ def result_markers(result: GroundingResult, frame_id: str, stamp: Time | None = 
         if not (np.isfinite(center).all() and np.isfinite(R).all() and np.isfinite(extent).all()):
             continue
         corners = box_corners(center, R, extent)
-        qx, qy, qz, qw = matrix_to_quat(R)
+        qx, qy, qz, qw = rot_to_quat(R)
         pose = Pose(position=Point(x=float(center[0]), y=float(center[1]), z=float(center[2])),
                     orientation=Quaternion(x=float(qx), y=float(qy), z=float(qz), w=float(qw)))
         edges = Marker(header=hdr, ns=NS, id=3 * i + 1, type=Marker.LINE_LIST, action=Marker.ADD, lifetime=life,

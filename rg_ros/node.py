@@ -24,12 +24,14 @@ from visualization_msgs.msg import MarkerArray
 
 from rg_core.geometry.tf_buffer import TFBuffer, TFError
 from rg_core.grounding.result import GroundingResult
+from rg_core.io.ros_images import camera_info_K
+from rg_core.io.sync import ApproximateTimeSync, SyncedSet
+from rg_core.perception.query import parse_mode, query_problem
 
 from . import convert as cv
 from .markers import result_markers
 from .params import DIAGNOSTICS_TOPIC, GROUND_SERVICE, NODE_NAME, NodeParams, check_unknown_params, declare_params
 from .pointcloud import to_pointcloud2
-from .sync import ApproximateTimeSync, SyncedSet
 from .worker import Frame, MapWorker, WorkerConfig
 
 # qos_overrides./<topic>.<publisher|subscription>.{history,depth,reliability} parameters for every topic
@@ -215,7 +217,7 @@ class GroundingNode(Node):
             return self._warn("size", f"frame rejected: colour is {rgb.shape[1]}x{rgb.shape[0]} but depth is "
                               f"{d.shape[1]}x{d.shape[0]} (depth must be registered to the colour image)")
         try:
-            K, (w, h) = cv.camera_info_to_K(info)
+            K, (w, h) = camera_info_K(info)
         except ValueError as exc:
             return self._warn("camera_info_bad", f"frame rejected: {exc}")
         if (w, h) != (rgb.shape[1], rgb.shape[0]):
@@ -326,18 +328,15 @@ class GroundingNode(Node):
         p = self.p
         query = request.query
         t = time.perf_counter()
-        if not query.strip():
-            result = GroundingResult(False, "empty query: say what to find, e.g. 'the red mug'")
-        elif len(query) > p.max_query_chars:
-            result = GroundingResult(False, f"query is {len(query)} characters, at most {p.max_query_chars} "
-                                            "are accepted (parameter max_query_chars)")
+        problem = query_problem(query, p.max_query_chars)   # the node's own limit (a parameter)
+        try:
+            mode = parse_mode(request.mode)
+        except ValueError as exc:
+            problem = problem or str(exc)
+        if problem:
+            result = GroundingResult(False, problem, query=query[:200])
         else:
-            try:
-                mode = cv.parse_mode(request.mode)
-            except ValueError as exc:
-                result = GroundingResult(False, str(exc), query=query)
-            else:
-                result = self.worker.ground(query, mode, int(request.max_results) or p.max_results, p.ground_timeout)
+            result = self.worker.ground(query, mode, int(request.max_results) or p.max_results, p.ground_timeout)
         stamp = self._stamp_now()
         try:
             response = cv.result_to_response(result, p.map_frame, stamp, response=response)

@@ -27,6 +27,7 @@ import numpy as np
 
 from rg_core.config import RGConfig
 from rg_core.grounding.result import GroundingResult
+from rg_core.perception.query import query_problem
 from rg_core.map.frames import FrameError
 from rg_core.map.mapper import Mapper
 
@@ -316,8 +317,9 @@ class MapWorker:
 
     def ground(self, query: str, mode: str = "auto", max_results: int = 1, timeout: float = 30.0) -> GroundingResult:
         """Ground `query` in the current map; never raises (failures are unsuccessful results)."""
-        if not query.strip():
-            return GroundingResult(False, "empty query", query=query)
+        problem = query_problem(query, self.cfg.ground.max_query_chars)
+        if problem:
+            return GroundingResult(False, problem, query=str(query)[:200])
         if not self.mapper.keyframes:
             return GroundingResult(False, "map is empty: no keyframes yet (send frames first)", query=query)
         try:
@@ -332,7 +334,7 @@ class MapWorker:
                 self.field = FeatureField(self.mapper, self.cfg.field)
             if self._grounder is None:
                 text = self._perception[1].encode_texts if self._perception is not None else None  # the map's space
-                self._grounder = Grounder(self.mapper, self.field, self.cfg, text_encoder=text)
+                self._grounder = Grounder.from_map(self.mapper, self.cfg, field=self.field, text_encoder=text)
             return self._grounder.ground(query, mode=mode, max_results=max_results)
         except ImportError as exc:   # a stage of the pipeline (reasoner, text encoder) has not landed
             self.log.error("grounding '%s': %s", query[:80], exc)

@@ -299,7 +299,7 @@ def test_odometry_pose_source(h):
     from nav_msgs.msg import Odometry
     from rclpy.qos import DurabilityPolicy
 
-    from rg_core.geometry.tf_buffer import rot_to_quat
+    from rg_core.geometry.rotations import rot_to_quat
     from rg_core.io.rosbag_write import BASE_FROM_CAMLINK_PITCH, BASE_FROM_CAMLINK_T, _rot_y, _T, base_from_optical
     from rg_core.geometry.conventions import BODY_FROM_OPTICAL
     from rg_core.map.store import load_map

@@ -17,6 +17,8 @@ from rclpy.serialization import deserialize_message, serialize_message  # noqa: 
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField  # noqa: E402
 
 from rg_core.geometry.conventions import PoseError, look_at  # noqa: E402
+from rg_core.geometry.rotations import quat_to_rot  # noqa: E402
+from rg_core.io.ros_images import COLOR_ENCODINGS, camera_info_K  # noqa: E402
 from rg_ros import convert as cv  # noqa: E402
 from rg_ros.pointcloud import from_pointcloud2, to_pointcloud2  # noqa: E402
 
@@ -61,7 +63,7 @@ def test_to_image_round_trips_every_encoding(encoding):
     assert msg.step == 4 * ch * np.dtype(dtype).itemsize and len(msg.data) == msg.step * 6
     assert msg.header.frame_id == "cam" and cv.from_time(msg.header.stamp) == 3.25
     msg = deserialize_message(serialize_message(msg), Image)
-    if encoding in cv.COLOR_ENCODINGS:
+    if encoding in COLOR_ENCODINGS:
         want = arr[..., :3][..., ::-1] if encoding.startswith("bgr") else arr[..., :3]
         np.testing.assert_array_equal(cv.image_to_rgb(msg), want)
     elif encoding == "16UC1":
@@ -144,7 +146,7 @@ def camera_info(k, width=640, height=480) -> CameraInfo:
 
 
 def test_camera_info_to_K():
-    K, size = cv.camera_info_to_K(camera_info([525, 0, 319.5, 0, 526, 239.5, 0, 0, 1]))
+    K, size = camera_info_K(camera_info([525, 0, 319.5, 0, 526, 239.5, 0, 0, 1]))
     np.testing.assert_array_equal(K, [[525, 0, 319.5], [0, 526, 239.5], [0, 0, 1]])
     assert size == (640, 480) and K.dtype == np.float64
 
@@ -159,14 +161,14 @@ def test_camera_info_to_K():
 ])
 def test_bad_camera_info(k, size, match):
     with pytest.raises(ValueError, match=match):
-        cv.camera_info_to_K(camera_info(k, *size))
+        camera_info_K(camera_info(k, *size))
 
 
 # ------------------------------------------------------------------------------------- poses
 
 def random_rotation(rng) -> np.ndarray:
     q = rng.normal(size=4)
-    return cv.quat_to_matrix(*(q / np.linalg.norm(q)))
+    return quat_to_rot(q / np.linalg.norm(q))
 
 
 @pytest.mark.parametrize("seed", range(20))
@@ -244,10 +246,12 @@ def test_stamps():
 
 
 def test_parse_mode():
-    assert cv.parse_mode("") == "auto" and cv.parse_mode(" Implicit ") == "implicit"
-    assert cv.parse_mode("explicit") == "explicit"
+    from rg_core.perception.query import parse_mode
+
+    assert parse_mode("") == "auto" and parse_mode(" Implicit ") == "implicit"
+    assert parse_mode("explicit") == "explicit"
     with pytest.raises(ValueError, match="'fuzzy'"):
-        cv.parse_mode("fuzzy")
+        parse_mode("fuzzy")
 
 
 # -------------------------------------------------------------------------------- PointCloud2

@@ -23,6 +23,7 @@ from rg_interfaces.msg import GroundedObject as GroundedObjectMsg  # noqa: E402
 from rg_interfaces.srv import Ground  # noqa: E402
 
 from rg_core.grounding.result import GroundedObject, GroundingResult  # noqa: E402
+from rg_core.perception.query import parse_mode  # noqa: E402
 from rg_ros import convert as cv  # noqa: E402
 from rg_ros.pointcloud import from_pointcloud2  # noqa: E402
 
@@ -147,7 +148,7 @@ def serve(ctx, handler):
 def ground_handler(request, response):
     """What the node will do, minus the map: parse the request, answer with a converted result."""
     try:
-        mode = cv.parse_mode(request.mode)
+        mode = parse_mode(request.mode)
     except ValueError as e:
         return cv.result_to_response(GroundingResult(success=False, message=str(e), query=request.query),
                                      "map", response=response)

@@ -1,4 +1,4 @@
-"""Approximate time synchronisation (rg_ros.sync): pure Python, no ROS needed."""
+"""Approximate time synchronisation (rg_core.io.sync, used by the node and rg map BAG): pure Python, no ROS needed."""
 from __future__ import annotations
 
 import random
@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from rg_ros.sync import ApproximateTimeSync, SyncedSet
+from rg_core.io.sync import ApproximateTimeSync, SyncedSet
 
 
 def test_pairs_within_slop_are_emitted_once():

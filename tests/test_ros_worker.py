@@ -119,7 +119,7 @@ def torch_equal(a, b) -> bool:
 
 
 def test_ground_answers_without_raising(worker):
-    assert worker.ground("").message == "empty query"
+    assert worker.ground("").message.startswith("empty query")
     r = worker.ground("the mug")
     assert not r.success and "map is empty" in r.message
     worker.start()

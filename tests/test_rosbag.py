@@ -91,7 +91,7 @@ def test_sqlite3_bag_and_odometry_and_topic_pose_sources(frames, tmp_path):
     assert next(db3.glob("*.db3"))
     assert len(read_bag(db3, test_every=0).train) == 4
     # add /camera/pose (PoseStamped of the optical frame in map) and /odom (map <- base_link)
-    from rg_core.geometry.tf_buffer import rot_to_quat
+    from rg_core.geometry.rotations import rot_to_quat
     from rg_core.io.rosbag_write import base_from_optical
 
     M = ts.types

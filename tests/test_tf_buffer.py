@@ -6,13 +6,13 @@ import math
 import numpy as np
 import pytest
 
+from rg_core.geometry.rotations import quat_to_rot
 from rg_core.geometry.tf_buffer import (
     ConnectivityError,
     ExtrapolationError,
     InvalidTransformError,
     LoopError,
     TFBuffer,
-    quat_to_rot,
     slerp,
 )
 

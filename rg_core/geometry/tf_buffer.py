@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .rotations import quat_to_rot
+
 QUAT_NORM_TOL = 1e-2   # tf2 refuses quaternions whose squared norm is off by more than 0.01 (denormalized)
 MAX_DEPTH = 1000       # tf2's MAX_GRAPH_DEPTH: a longer walk up the tree is a loop
 
@@ -49,36 +51,6 @@ class LoopError(TFError):
 
 class InvalidTransformError(TFError):
     """NaN/inf values, a non-unit quaternion, empty or equal frame ids."""
-
-
-def quat_to_rot(q: np.ndarray) -> np.ndarray:
-    """Unit quaternion [x, y, z, w] -> rotation [3, 3]."""
-    x, y, z, w = q
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
-def rot_to_quat(R: np.ndarray) -> np.ndarray:
-    """Rotation [3, 3] -> unit quaternion [x, y, z, w] with w >= 0 (Shepperd's method)."""
-    R = np.asarray(R, dtype=np.float64)
-    t = np.trace(R)
-    if t > 0:
-        s = 2.0 * math.sqrt(1.0 + t)
-        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
-        q = [0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
-    elif R[1, 1] > R[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
-        q = [(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
-    else:
-        s = 2.0 * math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
-        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s, (R[1, 0] - R[0, 1]) / s]
-    q = np.array(q)
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
 
 
 def slerp(q0: np.ndarray, q1: np.ndarray, a: float) -> np.ndarray:

@@ -67,7 +67,7 @@ def build_grounder(scene, cfg: RGConfig, supervision: str = "default", field_sec
     log.info("grounding ready: %d Gaussians, %d keyframes, %d field steps", len(mapper.gaussians),
              len(mapper.keyframes), field.steps)
     names = [o.name for o in scene.objects]
-    grounder = Grounder(mapper, field, cfg, reasoner=reasoner, text_encoder=text, scene_names=names)
+    grounder = Grounder.from_map(mapper, cfg, field=field, text_encoder=text, reasoner=reasoner, scene_names=names)
     if mapper.supervision is not None:
         grounder.store_texts()  # saved with the map: a later `rg ground` embeds only its query
     return grounder, report

@@ -21,6 +21,7 @@ from .cache import MapCache
 from .carve import mask_depth_offsets, registration_border
 from .grouping import Groups, cluster_instances
 from .relevancy import CANONICAL, relevancy_pca
+from ..perception.query import parse_mode, query_problem
 from .result import GroundingResult
 from .vocabulary import build_vocabulary, looks_like_name
 
@@ -76,6 +77,22 @@ class Grounder:
             from ..perception.minilm import remember
 
             remember(sset.text_embeddings)  # the map's stored name embeddings: no text model for them
+
+    @classmethod
+    def from_map(cls, mapper, cfg: RGConfig | None = None, field=None, text_encoder=None, reasoner=None,
+                 scene_names: list[str] | None = None, source: str = "the map") -> "Grounder":
+        """The one way callers assemble a Grounder (rg ground, rg map, the node's worker, build.py):
+        over `mapper` and its field (or `field`). With a text encoder, the map's mask embeddings
+        must have its width: a map built with another preset cannot be queried (ValueError)."""
+        sset = getattr(mapper, "supervision", None)
+        embs = [s.embeddings for s in sset.by_keyframe.values() if len(s.embeddings)] if sset is not None else []
+        if text_encoder is not None and embs:
+            d_map, d_text = embs[0].shape[-1], text_encoder(["x"]).shape[-1]
+            if d_map != d_text:
+                raise ValueError(f"{source}: the map's embeddings are {d_map}-d, the text encoder embeds queries in "
+                                 f"{d_text}-d: ground with the preset the map was built with")
+        return cls(mapper, field if field is not None else getattr(mapper, "field", None), cfg, reasoner=reasoner,
+                   text_encoder=text_encoder, scene_names=scene_names)
 
     # ------------------------------------------------------------------------------ models
 
@@ -186,15 +203,6 @@ class Grounder:
             return "the feature field has not been trained yet"
         return None
 
-    def _check_query(self, query) -> str | None:
-        if not isinstance(query, str):
-            return f"query must be a string, got {type(query).__name__}"
-        if not query.strip():
-            return "empty query: say what to find, e.g. 'coffee mug'"
-        if len(query) > self.gcfg.max_query_chars:
-            return f"query is {len(query)} characters long; at most {self.gcfg.max_query_chars} are accepted"
-        return None
-
     # ------------------------------------------------------------------------------ map-derived data
 
     def groups(self, scale: float, region: np.ndarray | None = None) -> Groups:
@@ -288,11 +296,13 @@ class Grounder:
 
     def _ground(self, query: str, mode: str, max_results: int) -> GroundingResult:
         t0 = time.perf_counter()
-        bad = self._check_query(query)
+        bad = query_problem(query, self.gcfg.max_query_chars)
         if bad:
             return GroundingResult(False, bad, query=str(query)[:200])
-        if mode not in ("auto", "explicit", "implicit"):
-            return GroundingResult(False, f"mode must be auto, explicit or implicit, got {mode!r}", query=query)
+        try:
+            mode = parse_mode(mode)
+        except ValueError as exc:
+            return GroundingResult(False, str(exc), query=query)
         if max_results < 1:
             return GroundingResult(False, f"max_results must be >= 1, got {max_results}", query=query)
         not_ready = self._not_ready()

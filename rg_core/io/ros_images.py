@@ -1,5 +1,5 @@
-"""Decoding (and encoding) of ROS image messages with numpy and OpenCV, no ROS import (cv_bridge is
-not on PyPI). Duck-typed: works on rclpy messages and on rosbags' deserialised messages alike
+"""Decoding (and encoding) of ROS image messages, and CameraInfo -> K, with numpy and OpenCV, no ROS
+import (cv_bridge is not on PyPI). Duck-typed: works on rclpy messages and on rosbags' deserialised messages alike
 (they share field names).
 
 - sensor_msgs/Image: rgb8, bgr8, rgba8, bgra8, mono8 colour; 16UC1 (millimetres) and 32FC1
@@ -192,3 +192,20 @@ def encode_compressed_depth(depth_m: np.ndarray) -> bytes:
     if not ok:
         raise ImageDecodeError("PNG encoding failed")
     return struct.pack("<iff", _CD_PNG, 0.0, 0.0) + buf.tobytes()
+
+
+def camera_info_K(info) -> tuple[np.ndarray, tuple[int, int]]:
+    """sensor_msgs/CameraInfo -> (K [3, 3] float64 in OpenCV pixel coordinates, (width, height));
+    ValueError for an empty size, NaN/inf, a zero focal length (uncalibrated) or a non-pinhole K."""
+    w, h = int(info.width), int(info.height)
+    if w == 0 or h == 0:
+        raise ValueError(f"CameraInfo: image size {w}x{h} is empty")
+    K = np.asarray(info.k, dtype=np.float64).reshape(3, 3)
+    if not np.isfinite(K).all():
+        raise ValueError("CameraInfo: K contains NaN or inf")
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError(f"CameraInfo: focal lengths must be > 0, got fx={K[0, 0]}, fy={K[1, 1]} "
+                         "(an all-zero K means the camera is uncalibrated)")
+    if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0:
+        raise ValueError(f"CameraInfo: K is not a pinhole matrix: {K.tolist()}")
+    return K, (w, h)

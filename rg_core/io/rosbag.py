@@ -240,16 +240,8 @@ def _check_encodings(msg, role: str, topic: str) -> None:
 
 
 def intrinsics_from_info(info) -> Intrinsics:
-    """CameraInfo -> Intrinsics; ValueError for a zero or non-finite focal length or an empty size."""
-    K = np.asarray(info.k, dtype=np.float64).reshape(3, 3)
-    w, h = int(info.width), int(info.height)
-    if w == 0 or h == 0:
-        raise ValueError(f"CameraInfo: image size {w}x{h} is empty")
-    if not np.isfinite(K).all():
-        raise ValueError("CameraInfo: K contains NaN or inf")
-    if K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ValueError(f"CameraInfo: focal lengths must be > 0, got fx={K[0, 0]}, fy={K[1, 1]} "
-                         "(an all-zero K means the camera is uncalibrated)")
+    """CameraInfo -> Intrinsics (ros_images.camera_info_K's checks)."""
+    K, (w, h) = ros_images.camera_info_K(info)
     return Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), w, h)
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry.conventions import BODY_FROM_OPTICAL
-from ..geometry.tf_buffer import rot_to_quat
+from ..geometry.rotations import rot_to_quat
 from . import ros_images
 
 COLOR_TOPIC = "/camera/camera/color/image_raw/compressed"

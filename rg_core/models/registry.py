@@ -14,6 +14,8 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..config import CACHE_DIR
+
 
 class ModelError(ValueError):
     """A model cannot be fetched, exported, verified or used: the message says what and how to fix it."""
@@ -85,7 +87,7 @@ MODELS: dict[str, ModelSpec] = {s.name: s for s in (
 def models_dir() -> Path:
     """$RG_MODELS_DIR, else ~/.cache/reasongrounder/models."""
     env = os.environ.get("RG_MODELS_DIR")
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "reasongrounder" / "models"
+    return Path(env).expanduser() if env else Path(CACHE_DIR).expanduser() / "models"
 
 
 def get_spec(name: str) -> ModelSpec:

@@ -15,6 +15,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from ..config import CACHE_DIR
 from .colour_names import CHROMATIC_TERMS, colour_histogram
 from .masks import BackendError, Mask
 
@@ -122,7 +123,7 @@ class ConSEEmbedder(Embedder):
     crop_fill = (124, 116, 104)
 
     def __init__(self, top_k: int = 10, batch: int = 32, colour_weight: float = 0.8, min_colour: float = 0.2,
-                 mirror: bool = False, class_text: str = "name", cache_dir: str = "~/.cache/reasongrounder"):
+                 mirror: bool = False, class_text: str = "name", cache_dir: str = CACHE_DIR):
         """colour_weight: weight of the colour term against the unit class term (0: plain ConSE);
         min_colour: colour words covering less of the object are ignored; mirror: average the class
         probabilities of the crop and its mirror image (twice the classifier's time for about one

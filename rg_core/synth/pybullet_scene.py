@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import CACHE_DIR
 from ..geometry.conventions import CV_FROM_GL
 
 
@@ -55,7 +56,7 @@ def loadable_urdf(urdf: str) -> str:
     missing = [c for c in root.iter("cdf") if not (src.parent / c.get("filename", "")).is_file()]
     if not missing:
         return urdf
-    out = Path.home() / ".cache" / "reasongrounder" / "urdf" / src.name
+    out = Path(CACHE_DIR).expanduser() / "urdf" / src.name
     for mesh in root.iter("mesh"):
         mesh.set("filename", str((src.parent / mesh.get("filename", "")).resolve()))
     visual = next(root.iter("visual")).find("geometry/mesh")
