@@ -166,17 +166,9 @@ def _messages(reader, path, conns, deserialize: bool):
         for conn, t, msg in iter_messages(reader, path, conns):
             yield conn, t, None, msg
         return
-    from rg_core.io.images import SceneError
+    from rg_core.io.rosbag import iter_raw
 
-    it = reader.messages(connections=conns)
-    while True:
-        try:
-            conn, t, raw = next(it)
-        except StopIteration:
-            return
-        except Exception as exc:  # noqa: BLE001 - a truncated bag
-            raise SceneError(f"{path}: reading the bag failed ({type(exc).__name__}: {exc}); is it truncated?") \
-                from exc
+    for conn, t, raw in iter_raw(reader, path, conns):
         yield conn, t, raw, None
 
 

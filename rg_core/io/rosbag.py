@@ -273,8 +273,8 @@ def open_reader(path: Path):
     return reader
 
 
-def iter_messages(reader, path: Path, connections):
-    """(connection, log time ns, deserialised message), with read errors as SceneError."""
+def iter_raw(reader, path: Path, connections):
+    """(connection, log time ns, raw CDR bytes), with read errors (a truncated bag) as SceneError."""
     it = reader.messages(connections=connections)
     while True:
         try:
@@ -284,6 +284,12 @@ def iter_messages(reader, path: Path, connections):
         except Exception as exc:  # noqa: BLE001
             raise SceneError(f"{path}: reading the bag failed ({type(exc).__name__}: {exc}); is it truncated?") \
                 from exc
+        yield conn, t, raw
+
+
+def iter_messages(reader, path: Path, connections):
+    """(connection, log time ns, deserialised message), with read errors as SceneError."""
+    for conn, t, raw in iter_raw(reader, path, connections):
         try:
             msg = reader.deserialize(raw, conn.msgtype)
         except Exception as exc:  # noqa: BLE001
