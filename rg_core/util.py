@@ -54,3 +54,18 @@ def make_registered(kind: str, registry: dict, name: str, **kwargs):
         module, _, attr = factory.partition(":")
         factory = getattr(importlib.import_module(module), attr)
     return factory(**kwargs)
+
+
+@contextlib.contextmanager
+def torch_threads(n: int):
+    """torch.set_num_threads(n) inside the block (n <= 0: leave it), the old count restored after."""
+    import torch
+
+    old = torch.get_num_threads()
+    if n > 0 and n != old:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != old:
+            torch.set_num_threads(old)

@@ -16,13 +16,13 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from rg_core.geometry.tf_buffer import TFBuffer, TFError
+from rg_core.geometry.tf_buffer import TFBuffer
 from rg_core.grounding.result import GroundingResult
 from rg_core.io.ros_images import camera_info_K
 from rg_core.io.sync import ApproximateTimeSync, SyncedSet
@@ -30,6 +30,7 @@ from rg_core.perception.query import parse_mode, query_problem
 
 from . import convert as cv
 from .markers import result_markers
+from .tf_input import TFInput
 from .params import DIAGNOSTICS_TOPIC, GROUND_SERVICE, NODE_NAME, NodeParams, check_unknown_params, declare_params
 from .pointcloud import to_pointcloud2
 from .worker import Frame, MapWorker, WorkerConfig
@@ -38,15 +39,7 @@ from .worker import Frame, MapWorker, WorkerConfig
 _QOS_OVERRIDES = QoSOverridingOptions.with_default_policies()
 
 
-def _final(exc: TFError) -> bool:
-    """A lookup error that waiting cannot cure: data already past the stamp (a gap, the past) or a loop."""
-    from rg_core.geometry.tf_buffer import LoopError
-
-    msg = str(exc)
-    return isinstance(exc, LoopError) or "falls in a gap" in msg or "extrapolation into the past" in msg
-
-
-class GroundingNode(Node):
+class GroundingNode(TFInput, Node):
     def __init__(self, node_name: str = NODE_NAME, **kwargs):
         """Parameters come from rcl (--ros-args --params-file / -p, or `parameter_overrides`); a bad
         one is a ValueError naming it (rg-node prints it and exits 2). Names are relative (remapping)."""
@@ -246,81 +239,6 @@ class GroundingNode(Node):
         if self.worker.submit(frame):
             self._warn("queue_drop", f"mapping is slower than the input: dropped the oldest queued frame "
                        f"(queue of {self.worker.queue.maxsize}, {self.worker.queue.dropped} dropped)", period=10.0)
-
-    # ------------------------------------------------------------------------------ TF
-
-    def _subscribe_tf(self, group) -> None:
-        """/tf (volatile) and /tf_static (transient local: the latched statics), as tf2_ros listens."""
-        try:
-            from tf2_msgs.msg import TFMessage   # built from msg_tf2/ when no ROS 2 install provides it
-        except ImportError as exc:
-            if self.p.pose_source == "topic":   # poses come as PoseStamped: TF is not needed
-                self.get_logger().warning(f"no tf2_msgs ({exc}): not listening to /tf (pose_source topic)")
-                return
-            raise RuntimeError(f"pose_source {self.p.pose_source} needs tf2_msgs (scripts/bootstrap.sh builds it "
-                               f"from msg_tf2/): {exc}") from exc
-
-        dyn = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.VOLATILE)
-        static = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
-                            durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.create_subscription(TFMessage, "/tf", lambda m: self._on_tf(m, False), dyn, callback_group=group)
-        self.create_subscription(TFMessage, "/tf_static", lambda m: self._on_tf(m, True), static, callback_group=group)
-        self.create_timer(0.05, self._try_pending, callback_group=group)
-
-    def _on_tf(self, msg, static: bool) -> None:
-        for ts in msg.transforms:
-            tr = ts.transform
-            try:
-                self.tf.set_transform(ts.header.frame_id, ts.child_frame_id, cv.from_time(ts.header.stamp),
-                                      [tr.translation.x, tr.translation.y, tr.translation.z],
-                                      [tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w], static=static)
-            except TFError as exc:
-                self._warn("tf_input", f"transform refused ({'/tf_static' if static else '/tf'}): {exc}")
-        if self._tf_pending:
-            self._try_pending()
-
-    def _pose_of(self, frame: Frame, pose_msg) -> np.ndarray:
-        """cam_to_world of a frame from TF (pose_source tf) or odometry + TF; raises TFError / ValueError."""
-        from rg_core.geometry.conventions import check_rigid
-
-        p = self.p
-        if not frame.frame_id:
-            raise TFError("the colour image has an empty header.frame_id; TF needs its optical frame")
-        if p.pose_source == "tf":
-            return check_rigid(self.tf.lookup(p.map_frame, frame.frame_id, frame.stamp), "TF pose")
-        from rg_core.io.rosbag import odometry_pose
-
-        return odometry_pose(self.tf, p.map_frame, pose_msg, frame.frame_id, frame.stamp)
-
-    def _try_pending(self) -> None:
-        """Submit waiting frames whose transform is now known; drop those past their deadline."""
-        with self._tf_lock:
-            self._try_pending_locked()
-
-    def _try_pending_locked(self) -> None:
-        now = time.monotonic()
-        keep = []
-        for deadline, frame, extra in self._tf_pending:
-            pose_msg, stamp_msg, w, h = extra
-            try:
-                frame.cam_to_world = self._pose_of(frame, pose_msg)
-            except TFError as exc:
-                if now < deadline and not _final(exc):
-                    keep.append((deadline, frame, extra))
-                else:
-                    self._tf_drop(frame, pose_msg, str(exc))
-                continue
-            except ValueError as exc:   # PoseError: NaN / bad quaternion in the odometry
-                self._warn("pose", f"frame rejected: bad pose on {self.topics['pose']}: {exc}")
-                continue
-            self._submit(frame, stamp_msg, w, h)
-        self._tf_pending = keep
-
-    def _tf_drop(self, frame: Frame, pose_msg, why: str) -> None:
-        self.tf_dropped += 1
-        self._warn("tf", f"frame dropped: no transform '{self.p.map_frame}' <- '{frame.frame_id}' at "
-                   f"t={frame.stamp:.6f} within {self.p.tf_wait:g} s: {why}")
 
     # ------------------------------------------------------------------------------ services
 

@@ -47,6 +47,32 @@ def to_pointcloud2(points: np.ndarray, colors: np.ndarray | None = None, frame_i
                        row_step=step * n, data=buf, is_dense=bool(np.isfinite(pts).all()))
 
 
+def _record_dtype(wanted: dict, order: str, point_step: int) -> np.dtype:
+    """The structured dtype of one point: the wanted fields (name -> PointField) at their offsets,
+    checked for datatype, count and extent; a packed rgb/rgba is read as its 4 bytes."""
+    formats, offsets = [], []
+    for name, f in wanted.items():
+        if f.datatype not in _DTYPES:
+            raise ValueError(f"PointCloud2 field '{name}': unknown datatype {f.datatype}")
+        if f.count != 1:
+            raise ValueError(f"PointCloud2 field '{name}': count {f.count} not supported (expected 1)")
+        code = _DTYPES[f.datatype]
+        if name in ("x", "y", "z") and code not in ("f4", "f8"):
+            raise ValueError(f"PointCloud2 field '{name}': datatype {code} not supported (float32 or float64)")
+        if name in ("rgb", "rgba"):
+            if code not in ("f4", "u4", "i4"):
+                raise ValueError(f"PointCloud2 field '{name}': packed colour must be 4 bytes, got {code}")
+            code = "u4"   # read the float's bits
+        if name in ("r", "g", "b") and code != "u1":
+            raise ValueError(f"PointCloud2 field '{name}': separate colour channels must be uint8, got {code}")
+        end = f.offset + int(code[1])
+        if end > point_step:
+            raise ValueError(f"PointCloud2 field '{name}' ends at byte {end}, past point_step {point_step}")
+        formats.append(order + code)
+        offsets.append(f.offset)
+    return np.dtype({"names": list(wanted), "formats": formats, "offsets": offsets, "itemsize": point_step})
+
+
 def from_pointcloud2(msg: PointCloud2) -> tuple[np.ndarray, np.ndarray | None]:
     """A cloud -> (points [N, 3] float32, colors [N, 3] uint8 RGB or None), N = height * width.
 
@@ -67,27 +93,7 @@ def from_pointcloud2(msg: PointCloud2) -> tuple[np.ndarray, np.ndarray | None]:
         wanted[colour] = fields[colour]
     elif all(k in fields for k in "rgb"):
         wanted.update({k: fields[k] for k in "rgb"})
-    formats, offsets = [], []
-    for name, f in wanted.items():
-        if f.datatype not in _DTYPES:
-            raise ValueError(f"PointCloud2 field '{name}': unknown datatype {f.datatype}")
-        if f.count != 1:
-            raise ValueError(f"PointCloud2 field '{name}': count {f.count} not supported (expected 1)")
-        code = _DTYPES[f.datatype]
-        if name in ("x", "y", "z") and code not in ("f4", "f8"):
-            raise ValueError(f"PointCloud2 field '{name}': datatype {code} not supported (float32 or float64)")
-        if name in ("rgb", "rgba"):
-            if code not in ("f4", "u4", "i4"):
-                raise ValueError(f"PointCloud2 field '{name}': packed colour must be 4 bytes, got {code}")
-            code = "u4"   # read the float's bits
-        if name in ("r", "g", "b") and code != "u1":
-            raise ValueError(f"PointCloud2 field '{name}': separate colour channels must be uint8, got {code}")
-        end = f.offset + int(code[1])
-        if end > msg.point_step:
-            raise ValueError(f"PointCloud2 field '{name}' ends at byte {end}, past point_step {msg.point_step}")
-        formats.append(order + code)
-        offsets.append(f.offset)
-    dtype = np.dtype({"names": list(wanted), "formats": formats, "offsets": offsets, "itemsize": msg.point_step})
+    dtype = _record_dtype(wanted, order, msg.point_step)
 
     row_bytes = msg.width * msg.point_step
     if msg.row_step < row_bytes:

@@ -91,7 +91,6 @@ def replay_bag(args, ros_argv: list[str]) -> int:
     from rg_core.io.images import SceneError
     from rg_core.io.rosbag import open_reader
 
-    speed = args.rate or 1.0
     path = Path(args.scene)
     try:
         reader = open_reader(path)
@@ -118,44 +117,53 @@ def replay_bag(args, ros_argv: list[str]) -> int:
             latched = c.topic.rstrip("/").endswith("tf_static")
             pubs[c.topic] = node.create_publisher(classes[c.topic], c.topic, replay_qos(latched))
         log = node.get_logger()
-        sent = passes = 0
+        sent, counter = 0, {"passes": 0}
         report_unmatched(log, wait_for_subscribers(list(pubs.values()), args.wait, minimum=args.min_subscribers),
                          args.wait, args.min_subscribers)
-        duration_ns = max(reader.duration, 1)
         try:
-            while True:
-                shift = passes * duration_ns
-                passes += 1
-                wall0, bag0 = time.monotonic(), None
-                for conn, t, raw, msg in _messages(reader, path, conns, deserialize=shift > 0):
-                    if shift and conn.topic.rstrip("/").endswith("tf_static"):
-                        continue   # latched once is enough
-                    bag0 = t if bag0 is None else bag0
-                    delay = (t - bag0) * 1e-9 / speed - (time.monotonic() - wall0)
-                    if delay > 0:
-                        time.sleep(delay)
-                    if shift:
-                        _shift(msg, shift)
-                        raw = reader.typestore.serialize_cdr(msg, conn.msgtype)
-                    pubs[conn.topic].publish(bytes(raw))
-                    sent += 1
-                    if args.count and sent >= args.count:
-                        raise StopIteration
-                if not args.loop:
-                    break
-        except (StopIteration, KeyboardInterrupt):
+            for topic, raw in _bag_stream(reader, path, conns, args, counter):
+                pubs[topic].publish(raw)
+                sent += 1
+        except KeyboardInterrupt:
             pass
         except SceneError as exc:
             print(f"rg-replay: {exc}", file=sys.stderr)
             return 2
         finally:
-            log.info(f"published {sent} messages from {path} ({passes} passes)")
+            log.info(f"published {sent} messages from {path} ({counter['passes']} passes)")
             flush_publishers(list(pubs.values()))
             node.destroy_node()
             rclpy.try_shutdown()
     finally:
         reader.close()
     return 0
+
+
+def _bag_stream(reader, path, conns, args, counter: dict):
+    """(topic, CDR bytes) at the recorded times divided by --rate; with --loop pass after pass, each
+    later pass with its stamps shifted by the bag's duration and without /tf_static (latched once);
+    at most --count messages. counter["passes"] counts the passes begun."""
+    speed, duration_ns, sent = args.rate or 1.0, max(reader.duration, 1), 0
+    while True:
+        shift = counter["passes"] * duration_ns
+        counter["passes"] += 1
+        wall0, bag0 = time.monotonic(), None
+        for conn, t, raw, msg in _messages(reader, path, conns, deserialize=shift > 0):
+            if shift and conn.topic.rstrip("/").endswith("tf_static"):
+                continue
+            bag0 = t if bag0 is None else bag0
+            delay = (t - bag0) * 1e-9 / speed - (time.monotonic() - wall0)
+            if delay > 0:
+                time.sleep(delay)
+            if shift:
+                _shift(msg, shift)
+                raw = reader.typestore.serialize_cdr(msg, conn.msgtype)
+            yield conn.topic, bytes(raw)
+            sent += 1
+            if args.count and sent >= args.count:
+                return
+        if not args.loop:
+            return
 
 
 def _messages(reader, path, conns, deserialize: bool):

@@ -16,6 +16,7 @@ from ..config import RGConfig
 from ..geometry.conventions import backproject
 from ..geometry.points import map_spacing
 from ..render import rasterize
+from ..util import torch_threads
 from . import stages
 from .cache import MapCache
 from .carve import mask_depth_offsets, registration_border
@@ -26,22 +27,6 @@ from .result import GroundingResult
 from .vocabulary import build_vocabulary, looks_like_name
 
 log = logging.getLogger(__name__)
-
-
-class _threads:
-    """torch.set_num_threads(n) inside a block (n <= 0: leave it), restored after."""
-
-    def __init__(self, n: int):
-        self.n = n
-
-    def __enter__(self):
-        self.old = torch.get_num_threads()
-        if self.n > 0 and self.n != self.old:
-            torch.set_num_threads(self.n)
-
-    def __exit__(self, *exc):
-        if torch.get_num_threads() != self.old:
-            torch.set_num_threads(self.old)
 
 
 def _spread(items: list, n: int) -> list:
@@ -215,7 +200,7 @@ class Grounder:
 
         def make() -> Groups:
             g = self.gcfg
-            with _threads(self._outer_threads):
+            with torch_threads(self._outer_threads):
                 feats = self.field.gaussian_instance(scale)                     # [N, Di]
             if region is None:
                 out = cluster_instances(feats, g.max_cluster_points, g.min_cluster_size, g.cluster_eps,
@@ -282,7 +267,7 @@ class Grounder:
         self._check_cache()
         w, h = kf.size
         def make():
-            with _threads(self._outer_threads):
+            with torch_threads(self._outer_threads):
                 return self.field.render(kf.K, kf.cam_to_world, w, h)
         return self.cache.get("renders", (kf.index, w, h), make)
 
@@ -291,7 +276,7 @@ class Grounder:
 
     def ground(self, query: str, mode: str = "auto", max_results: int = 1) -> GroundingResult:
         self._outer_threads = torch.get_num_threads()
-        with _threads(self.gcfg.query_threads):
+        with torch_threads(self.gcfg.query_threads):
             return self._ground(query, mode, max_results)
 
     def _ground(self, query: str, mode: str, max_results: int) -> GroundingResult:

@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +22,7 @@ import numpy as np
 import torch
 
 from ..config import CACHE_DIR
+from .explicit import EXPLICIT_SIMILARITY, explicit_match
 from .masks import BackendError
 from .query import check_query, parse_mode
 from .text_cache import CachedText, embed_cached, inner_encoder
@@ -35,14 +35,11 @@ FIT = {"name_weight": 0.5, "min_similarity": 0.0, "absent_margin": 0.35, "backgr
        "prior_trust": 0.4}
 
 NAME_TEMPLATE = "a {}"          # measured: 57/101 top-1 vs 51/101 for bare names
-EXPLICIT_SIMILARITY = 0.80      # bare query vs bare name; implicit descriptions reach 0.69
-EXPLICIT_MAX_EXTRA = 3          # words besides a contained name ("pick up the apple on the left")
 BACKGROUND_EXCLUDE = 0.6        # background names this close to a vocabulary name count as synonyms
 CONFIDENCE_SCALE = 0.05         # confidence = 1 - exp(-margin / scale): margin 0.05 -> 0.63
-_FILLER = {"the", "a", "an", "this", "that", "these", "those", "some", "my", "your", "please", "one"}
 
-__all__ = ["Reasoning", "Reasoner", "TextReasoner", "is_explicit", "explicit_match", "make_reasoner",
-           "register", "validate", "normalise", "reasoner_from_config", "BackendError"]
+__all__ = ["Reasoning", "Reasoner", "TextReasoner", "make_reasoner", "register", "validate", "reasoner_from_config",
+           "BackendError"]
 
 
 @dataclass
@@ -68,60 +65,6 @@ def validate(query: str, vocabulary: list[str], max_query_chars: int = 1000, mod
     if not clean:
         raise ValueError("vocabulary is empty: expected at least one object name the map can ground")
     return clean
-
-
-def _singular(w: str) -> str:
-    if len(w) > 4 and w.endswith("ies"):
-        return w[:-3] + "y"
-    if len(w) > 3 and w.endswith("es") and w[:-2].endswith(("s", "x", "ch", "sh")):
-        return w[:-2]
-    if len(w) > 3 and w.endswith("s") and not w.endswith(("ss", "us", "is")):
-        return w[:-1]
-    return w
-
-
-def normalise(text: str) -> tuple[str, ...]:
-    """Lower-case words without punctuation, determiners or plural endings."""
-    return tuple(_singular(w) for w in re.findall(r"[a-z0-9]+", text.lower()) if w not in _FILLER)
-
-
-def _contains(hay: tuple[str, ...], needle: tuple[str, ...]) -> bool:
-    n = len(needle)
-    return n > 0 and any(hay[i:i + n] == needle for i in range(len(hay) - n + 1))
-
-
-def explicit_match(query: str, vocabulary: list[str]) -> list[str]:
-    """Vocabulary names the query names by rule, best first: exact (normalised), the query is the
-    head noun of a name ("mug" -> "coffee mug"), or a name inside a short query ("pick up the
-    coffee mugs"). Longer names win over shorter ones ("orange cup" over "orange")."""
-    q = normalise(query)
-    if not q:
-        return []
-    full: list[tuple[int, str]] = []   # the whole name is in the query: (length, name)
-    head: list[str] = []               # the query is the end of a longer name
-    for name in vocabulary:
-        n = normalise(name)
-        if not n:
-            continue
-        if q == n or (_contains(q, n) and len(q) - len(n) <= EXPLICIT_MAX_EXTRA):
-            full.append((len(n), name))
-        elif len(q) < len(n) and n[-len(q):] == q:
-            head.append(name)
-    if full:
-        longest = max(k for k, _ in full)
-        return [name for k, name in full if k == longest]
-    return head
-
-
-def is_explicit(query: str, vocabulary: list[str], text_model=None) -> bool:
-    """True when the query names a vocabulary entry (rules of `explicit_match`, or a bare-text
-    similarity >= EXPLICIT_SIMILARITY when a text model is given, e.g. a misspelt name)."""
-    if explicit_match(query, vocabulary):
-        return True
-    if text_model is None:
-        return False
-    sims = text_model([query]) @ text_model(list(vocabulary)).T
-    return float(sims.max()) >= EXPLICIT_SIMILARITY
 
 
 DOMAIN_PRIOR_PATH = Path(__file__).parent / "data" / "domain_prior.json"

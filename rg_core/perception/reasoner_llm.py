@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .explicit import explicit_match, normalise
 from .gguf import llm_install_command, packaged_gguf
-from .reasoner import (NAME_TEMPLATE, BackendError, Reasoner, Reasoning, TextReasoner, explicit_match, normalise,
-                       validate)
+from .reasoner import NAME_TEMPLATE, BackendError, Reasoner, Reasoning, TextReasoner, validate
 
 log = logging.getLogger(__name__)
 SYSTEM_PROMPT = (
