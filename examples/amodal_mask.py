@@ -7,7 +7,6 @@ POSE.json: {"K": 3x3, "cam_to_world": 4x4 (OpenCV axes: x right, y down, z forwa
 without it the camera of the answer's reference keyframe.
 """
 import argparse
-import json
 from pathlib import Path
 
 import cv2
@@ -15,6 +14,7 @@ import numpy as np
 
 from rg_core.config import load_config
 from rg_core.grounding.pipeline import Grounder
+from rg_core.io.camera_json import read_camera_json
 from rg_core.map.store import load_map
 
 ap = argparse.ArgumentParser()
@@ -29,8 +29,7 @@ result = grounder.ground(args.query)
 if not result.success:
     raise SystemExit(f"not grounded: {result.message}")
 if args.pose:
-    cam = json.loads(Path(args.pose).read_text())
-    K, c2w, w, h = np.array(cam["K"]), np.array(cam["cam_to_world"]), int(cam["width"]), int(cam["height"])
+    K, c2w, w, h = read_camera_json(args.pose)
 else:
     kf = next(k for k in grounder.mapper.keyframes if k.index == result.reference_view)
     (w, h), K, c2w = kf.size, np.asarray(kf.K), np.asarray(kf.cam_to_world)

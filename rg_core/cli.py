@@ -84,47 +84,9 @@ def cmd_report(args, cfg) -> dict:
 
 
 def cmd_demo(args, cfg) -> dict:
-    from .io.captures import read_scene
-    from .synth.generator import default_objects_dir, generate_scene
-    from .viz.contact_sheet import write_contact_sheet
+    from .report.demo import run_demo
 
-    d = cfg.demo
-    out = Path(args.out)
-    s = dataclasses.replace(cfg.synth, views=d.views, width=d.width, height=d.height, objects=d.objects,
-                            seed=d.seed)
-    t0 = time.perf_counter()
-    summary = generate_scene(out / "scene", s, default_objects_dir(), progress=not args.quiet)
-    t1 = time.perf_counter()
-    scene = read_scene(out / "scene")
-    sheet = write_contact_sheet(scene, out / "contact_sheet.png", d.sheet_views)
-    t2 = time.perf_counter()
-    result = {"scene": summary, "contact_sheet": str(sheet),
-              "seconds": {"synth": round(t1 - t0, 3), "contact_sheet": round(t2 - t1, 3)}}
-    if d.ground and scene.queries:
-        from .grounding.build import build_grounder
-        from .map.store import save_map
-        from .viz.grounding import write_grounding_pngs
-
-        grounder, report = build_grounder(scene, cfg, d.supervision, d.field_seconds, progress=not args.quiet)
-        result["map"] = str(save_map(grounder.mapper, out / "scene.rgmap"))
-        q = scene.queries[0]
-        answers = {}
-        for kind, text in (("explicit", q.explicit), ("implicit", q.implicit[0] if q.implicit else q.explicit)):
-            res = grounder.ground(text, mode=kind)
-            a = res.to_json()
-            a["expected"] = next((o.name for o in scene.objects if o.id == q.object_id), "")
-            if res.success:
-                f = scene.test[0] if scene.test else scene.train[0]
-                W, H = f.intrinsics.width, f.intrinsics.height
-                amodal, visible = grounder.masks(res, f.intrinsics.K, f.cam_to_world, W, H)
-                a["pictures"] = write_grounding_pngs(grounder, res, f.intrinsics.K, f.cam_to_world, W, H, amodal,
-                                                     visible, out / f"answer_{kind}")
-            print(f"{kind}: {text!r} -> {res.target or '-'} ({'ok' if res.success else res.message})", file=sys.stderr)
-            answers[kind] = a
-        result["answers"] = answers
-        result["seconds"]["build"] = report.get("seconds_map", 0.0)
-        result["seconds"]["total"] = round(time.perf_counter() - t0, 3)
-    return result
+    return run_demo(cfg, Path(args.out), progress=not args.quiet)
 
 
 def cmd_map(args, cfg) -> dict:
@@ -189,19 +151,11 @@ def _add_bag_args(p) -> None:
 def _camera_from_args(args, grounder, result):
     """The camera masks are rendered for: --view I (a keyframe), --pose FILE (JSON with K,
     cam_to_world [OpenCV axes], width, height), or the result's reference view."""
-    import numpy as np
-
-    kfs = {kf.index: kf for kf in grounder.mapper.keyframes}
     if args.pose:
-        d = json.loads(Path(args.pose).read_text())
-        try:
-            K, c2w = np.asarray(d["K"], np.float64), np.asarray(d["cam_to_world"], np.float64)
-            w, h = int(d["width"]), int(d["height"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ValueError(f"{args.pose}: pose file needs K [3x3], cam_to_world [4x4], width, height ({exc})") from exc
-        if K.shape != (3, 3) or c2w.shape != (4, 4) or not np.isfinite(K).all() or not np.isfinite(c2w).all():
-            raise ValueError(f"{args.pose}: K must be finite 3x3 and cam_to_world finite 4x4")
-        return K, c2w, w, h
+        from .io.camera_json import read_camera_json
+
+        return read_camera_json(args.pose)
+    kfs = {kf.index: kf for kf in grounder.mapper.keyframes}
     idx = args.view if args.view is not None else result.reference_view
     if idx not in kfs:
         raise ValueError(f"--view {idx}: not a keyframe of this map; keyframes: {sorted(kfs)[:20]}...")
