@@ -13,11 +13,12 @@ from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion, Vector3
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
-from rg_core.geometry.conventions import PoseError, check_rigid
-from rg_core.geometry.rotations import checked_quat_to_rot, rot_to_quat
+from rg_core.geometry.conventions import check_rigid
+from rg_core.geometry.rotations import rot_to_quat
 from rg_core.grounding.result import GroundedObject as CoreObject
 from rg_core.grounding.result import GroundingResult
 from rg_core.io.ros_images import ENCODINGS
+from rg_core.io.rosbag import transform_to_matrix
 from rg_core.io.ros_images import _unsupported, decode_color, decode_depth
 from rg_core.io.ros_images import image_array as _image_array
 
@@ -106,16 +107,7 @@ def depth_to_image(depth: np.ndarray, frame_id: str = "", stamp: float | Time | 
 
 def pose_to_matrix(pose: Pose | PoseStamped) -> np.ndarray:
     """Pose (of an optical frame in the map frame) -> cam_to_world [4, 4] float64."""
-    if isinstance(pose, PoseStamped):
-        pose = pose.pose
-    p, o = pose.position, pose.orientation
-    t = np.array([p.x, p.y, p.z], dtype=np.float64)
-    if not np.isfinite(t).all():
-        raise PoseError(f"position contains NaN or inf: {t.tolist()}")
-    T = np.eye(4)
-    T[:3, :3] = checked_quat_to_rot([o.x, o.y, o.z, o.w])
-    T[:3, 3] = t
-    return T
+    return transform_to_matrix(pose.pose if isinstance(pose, PoseStamped) else pose)
 
 
 def matrix_to_pose(T: np.ndarray) -> Pose:

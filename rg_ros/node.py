@@ -155,7 +155,7 @@ class GroundingNode(TFInput, Node):
         self.pub_map_cloud = pub(PointCloud2, "~/map_cloud", 1)
         self.pub_status = pub(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
 
-    # ------------------------------------------------------------------------------ parameters
+    # ------------------------------------------------------------------------------ names
 
     def _transport_topic(self, base: str, transport: str) -> str:
         name = self.resolve_topic_name(base)

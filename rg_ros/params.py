@@ -10,6 +10,8 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from rg_core.io.rosbag import POSE_SOURCES
+
 NODE_NAME = "rg_node"
 
 
@@ -44,7 +46,7 @@ class NodeParams:
     pose_source: str = _p("tf", "tf: look up map_frame <- the colour image's header.frame_id on /tf and "
                           "/tf_static at its stamp; topic: geometry_msgs/PoseStamped on 'pose'; odometry: "
                           "nav_msgs/Odometry on 'odom', chained with TF to the image's frame",
-                          choices=("tf", "topic", "odometry"))
+                          choices=POSE_SOURCES)
     map_frame: str = _p("map", "frame of poses, clouds and markers")
     tf_wait: float = _p(0.5, "seconds a frame waits for its transform; then it is dropped and counted "
                         "(diagnostics 'tf')", 0.0, 60.0)
@@ -90,7 +92,6 @@ class NodeParams:
 
 PARAM_FIELDS = {f.name: f for f in dataclasses.fields(NodeParams)}
 PARAM_NAMES = tuple(PARAM_FIELDS)
-POSE_SOURCES = PARAM_FIELDS["pose_source"].metadata["choices"]
 
 
 def descriptor(name: str) -> ParameterDescriptor:

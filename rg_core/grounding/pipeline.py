@@ -304,7 +304,7 @@ class Grounder:
             t[stage] = time.perf_counter() - s
             return out
 
-        r = timed("reason", self._reason, query, mode)
+        r = self._reason(query, mode)
         t["reason"] = time.perf_counter() - t0   # from the start: validation is part of it
         res.target, res.explanation = r.target, r.explanation
         if not r.target:

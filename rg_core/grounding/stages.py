@@ -71,13 +71,11 @@ def reference(g, name: str) -> Reference | str:
     largest) and that mask's scale s*; a message when no mask is similar enough."""
     target = g.encode([name])[0]
     cands = mask_candidates(g, target)
-    if not cands:
-        return f"no part of the map looks like {name!r}: best mask similarity -2.00 < {g.gcfg.min_mask_similarity}"
-    top = max(c.similarity for c in cands)
-    best = max((c for c in cands if c.similarity >= top - 0.02), key=lambda c: c.pixels)
-    if best.similarity < g.gcfg.min_mask_similarity:
-        return (f"no part of the map looks like {name!r}: best mask similarity {best.similarity:.2f} "
-                f"< {g.gcfg.min_mask_similarity}")
+    top = max((c.similarity for c in cands), default=-2.0)
+    best = max((c for c in cands if c.similarity >= top - 0.02), key=lambda c: c.pixels, default=None)
+    sim = -2.0 if best is None else best.similarity
+    if best is None or sim < g.gcfg.min_mask_similarity:
+        return f"no part of the map looks like {name!r}: best mask similarity {sim:.2f} < {g.gcfg.min_mask_similarity}"
     mask = torch.from_numpy(g.mapper.supervision.by_keyframe[best.keyframe.index].masks[best.index])
     return Reference(target, cands, best.keyframe, best.index, best.similarity, best.scale, mask)
 

@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry.conventions import PoseError, check_rigid
-from ..geometry.tf_buffer import TFBuffer, TFError, to_matrix
+from ..geometry.rotations import checked_quat_to_rot
+from ..geometry.tf_buffer import TFBuffer, TFError
 from . import ros_images
 from .images import SceneError
 from .scene import Frame, Intrinsics, Scene
@@ -89,16 +90,14 @@ def stamp_of(msg) -> float:
 
 def transform_to_matrix(tr) -> np.ndarray:
     """geometry_msgs/Transform or Pose (rosbags or rclpy) -> [4, 4]; PoseError on NaN / bad quaternion."""
-    t = getattr(tr, "translation", None) or tr.position
-    r = getattr(tr, "rotation", None) or tr.orientation
+    field, t, r = (("position", tr.position, tr.orientation) if hasattr(tr, "position")
+                   else ("translation", tr.translation, tr.rotation))
     v = np.array([t.x, t.y, t.z], np.float64)
-    q = np.array([r.x, r.y, r.z, r.w], np.float64)
-    if not (np.isfinite(v).all() and np.isfinite(q).all()):
-        raise PoseError(f"NaN or inf in translation {v.tolist()} / rotation {q.tolist()}")
-    n = float(np.linalg.norm(q))
-    if abs(n - 1.0) > 1e-2:
-        raise PoseError(f"quaternion norm is {n:.4g}, expected 1")
-    return to_matrix(v, q / n)
+    if not np.isfinite(v).all():
+        raise PoseError(f"{field} contains NaN or inf: {v.tolist()}")
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = checked_quat_to_rot([r.x, r.y, r.z, r.w]), v
+    return T
 
 
 def add_tf_message(buf: TFBuffer, msg, static: bool) -> list[str]:
@@ -239,12 +238,6 @@ def _check_encodings(msg, role: str, topic: str) -> None:
                              f"supported: {', '.join(allowed)}")
 
 
-def intrinsics_from_info(info) -> Intrinsics:
-    """CameraInfo -> Intrinsics (ros_images.camera_info_K's checks)."""
-    K, (w, h) = ros_images.camera_info_K(info)
-    return Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), w, h)
-
-
 class _Drops:
     def __init__(self):
         self.counts: dict[str, int] = {}
@@ -343,16 +336,17 @@ def read_bag(path: str | Path, opts: BagOptions | None = None, test_every: int =
             t = s.stamps[0]
             where = f"{path.name}: {topics['color']} at t={t:.6f}"
             try:
-                intr = intrinsics_from_info(info)
+                K, (w, h) = ros_images.camera_info_K(info)
             except ValueError as exc:
                 drops.add("camera_info", f"{where}: {exc}")
                 continue
+            intr = Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), w, h)
             try:
                 c2w = _pose(buf, opts, color, s.msgs[3] if len(s.msgs) > 3 else None, t)
             except TFError as exc:
                 drops.add("tf", f"{where}: {exc}")
                 continue
-            except (PoseError, ValueError) as exc:
+            except ValueError as exc:   # PoseError too
                 drops.add("pose", f"{where}: {exc}")
                 continue
             frames.append(BagFrame(index=len(frames), intrinsics=intr, cam_to_world=c2w,
