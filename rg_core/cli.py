@@ -135,7 +135,8 @@ def _bag_options(args):
 
 def _add_bag_args(p) -> None:
     """`rg map BAG` options (rg_core.io.rosbag.BagOptions; empty topics are auto-detected)."""
-    from .io.rosbag import POSE_SOURCES, BagOptions
+    from .io.ros_input import POSE_SOURCES
+    from .io.rosbag import BagOptions
 
     d = BagOptions()
     g = p.add_argument_group("ROS 2 bags (.mcap, .db3 or a rosbag2 folder)")

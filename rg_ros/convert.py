@@ -18,7 +18,7 @@ from rg_core.geometry.rotations import rot_to_quat
 from rg_core.grounding.result import GroundedObject as CoreObject
 from rg_core.grounding.result import GroundingResult
 from rg_core.io.ros_images import ENCODINGS
-from rg_core.io.rosbag import transform_to_matrix
+from rg_core.io.ros_input import transform_to_matrix
 from rg_core.io.ros_images import _unsupported, decode_color, decode_depth
 from rg_core.io.ros_images import image_array as _image_array
 

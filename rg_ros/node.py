@@ -25,6 +25,7 @@ from visualization_msgs.msg import MarkerArray
 from rg_core.geometry.tf_buffer import TFBuffer
 from rg_core.grounding.result import GroundingResult
 from rg_core.io.ros_images import camera_info_K
+from rg_core.io.ros_input import resolve_pose
 from rg_core.io.sync import ApproximateTimeSync, SyncedSet
 from rg_core.perception.query import parse_mode, query_problem
 
@@ -33,7 +34,7 @@ from .markers import result_markers
 from .tf_input import TFInput
 from .params import DIAGNOSTICS_TOPIC, GROUND_SERVICE, NODE_NAME, NodeParams, check_unknown_params, declare_params
 from .pointcloud import to_pointcloud2
-from .worker import Frame, MapWorker, WorkerConfig
+from .worker import Frame, MapWorker
 
 # qos_overrides./<topic>.<publisher|subscription>.{history,depth,reliability} parameters for every topic
 _QOS_OVERRIDES = QoSOverridingOptions.with_default_policies()
@@ -90,9 +91,7 @@ class GroundingNode(TFInput, Node):
             mapper = load_map(p.load_map)   # MapFileError: the node does not start (rg-node says why)
             log.info(f"loaded map {p.load_map}: {mapper.stats()['keyframes']} keyframes, "
                      f"{len(mapper.gaussians)} Gaussians")
-        wcfg = WorkerConfig(queue_size=p.frame_queue_size, features=p.features, mask_generator=p.mask_generator,
-                            embedder=p.embedder, train_slice=p.train_slice, train_seconds_max=p.train_seconds_max,
-                            refine_iters=p.refine_iters)
+        wcfg = p.worker_config()
         loader = None
         if p.preset:
             from rg_core.models import ModelError, apply_reasoner, make_perception
@@ -108,6 +107,7 @@ class GroundingNode(TFInput, Node):
     def _make_inputs(self, p: NodeParams) -> None:
         """Subscriptions (relative names resolved through the remappings; a compressed transport
         subscribes to <base>/<transport> as image_transport does), the synchroniser and TF."""
+        self.inputs = p.input_config()
         self.tf = TFBuffer(p.tf_cache_time, p.tf_extrapolation, p.tf_max_gap)
         self._tf_pending: list[tuple[float, Frame, object]] = []   # (deadline, frame without pose, pose message)
         self._tf_lock = threading.Lock()   # the pending frames: touched by the sensor and the TF callbacks
@@ -217,12 +217,9 @@ class GroundingNode(TFInput, Node):
             return self._warn("size_info", f"frame rejected: CameraInfo is {w}x{h} but the colour image is "
                               f"{rgb.shape[1]}x{rgb.shape[0]}")
         if p.pose_source == "topic":
-            if pose.header.frame_id and pose.header.frame_id != p.map_frame:
-                return self._warn("pose_frame", f"frame rejected: pose is in frame '{pose.header.frame_id}', "
-                                  f"expected '{p.map_frame}' (parameter map_frame)")
             try:
-                c2w = cv.pose_to_matrix(pose)
-            except ValueError as exc:   # PoseError: NaN, inf, non-unit quaternion
+                c2w = resolve_pose(self.tf, self.inputs, color.header.frame_id, s.stamps[0], pose)
+            except ValueError as exc:   # PoseError (NaN, inf, non-unit quaternion) or the wrong frame
                 return self._warn("pose", f"frame rejected: bad pose on {self.topics['pose']}: {exc}")
             return self._submit(Frame(rgb, d, K, c2w, s.stamps[0], color.header.frame_id), color.header.stamp, w, h)
         frame = Frame(rgb, d, K, np.eye(4), s.stamps[0], color.header.frame_id)

@@ -3,22 +3,69 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
+import typing
 from dataclasses import dataclass, field
+from typing import Annotated
 
+from annotated_types import Interval
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from rg_core.io.rosbag import POSE_SOURCES
+from rg_core.config import GroundConfig, check_fields, section
+from rg_core.io.ros_input import InputConfig
 
 NODE_NAME = "rg_node"
+
+
+@section
+class WorkerConfig:
+    """What the map worker does besides mapping (the node's parameters of the same names)."""
+
+    queue_size: Annotated[int, Interval(ge=1, le=100000)] = 4
+    """Frames waiting for the mapper; when full the oldest is dropped and counted."""
+    features: bool = True
+    """Keyframe supervision and feature-field training while the mapper is idle."""
+    mask_generator: str = "rgbd"
+    """Mask generator backend of the supervision (rg_core.perception.masks)."""
+    embedder: str = "conse"
+    """Image-text embedder backend of the supervision and queries (rg_core.perception.embed)."""
+    train_slice: Annotated[float, Interval(ge=0.01, le=600.0)] = 0.5
+    """Seconds of field training per idle slice (the map lock is held for one slice)."""
+    train_seconds_max: Annotated[float, Interval(ge=0.0, le=1e6)] = 30.0
+    """Field training seconds after each supervision change (0 = whenever idle)."""
+    refine_iters: Annotated[int, Interval(ge=0, le=100000)] = 0
+    """Map refinement iterations per idle slice (0 = off), at most map.final_iters per keyframe."""
+    idle_wait: Annotated[float, Interval(gt=0.0, le=60.0)] = 0.2
+    """Seconds the worker sleeps waiting for a frame when it has nothing else to do."""
+
+    def __post_init__(self):
+        check_fields(self)
 
 
 def _p(default, doc: str, lo: float | None = None, hi: float | None = None, choices: tuple[str, ...] = ()):
     """A node parameter: default (its type is the parameter's type), description, inclusive range or choices."""
     return field(default=default, metadata={"doc": doc, "range": None if lo is None else (lo, hi),
                                             "choices": choices})
+
+
+@functools.cache
+def _docs(cls: type) -> dict[str, str]:
+    from pydantic import TypeAdapter   # the attribute docstrings, as pydantic reads them
+    return {k: v.get("description", "") for k, v in TypeAdapter(cls).json_schema()["properties"].items()}
+
+
+def _from(cls: type, name: str):
+    """A node parameter defined by a config section's field: its default, docstring, range and choices."""
+    f = {f.name: f for f in dataclasses.fields(cls)}[name]
+    tp = typing.get_type_hints(cls, include_extras=True)[name]
+    rng = next((m for m in getattr(tp, "__metadata__", ()) if isinstance(m, Interval)), None)
+    lo = None if rng is None else (rng.ge if rng.ge is not None else rng.gt)
+    hi = None if rng is None else (rng.le if rng.le is not None else rng.lt)
+    choices = typing.get_args(tp) if typing.get_origin(tp) is typing.Literal else ()
+    return _p(f.default, _docs(cls)[name], lo, hi, choices)
 
 
 # Relative names the node subscribes and serves (set by remapping, as image_pipeline's nodes do) and
@@ -43,22 +90,15 @@ class NodeParams:
     depth_transport: str = _p("raw", "image_transport of depth/image (registered to the colour image): raw "
                               "(16UC1 mm or 32FC1 m) or compressedDepth (on depth/image/compressedDepth)",
                               choices=TRANSPORTS["depth_transport"])
-    pose_source: str = _p("tf", "tf: look up map_frame <- the colour image's header.frame_id on /tf and "
-                          "/tf_static at its stamp; topic: geometry_msgs/PoseStamped on 'pose'; odometry: "
-                          "nav_msgs/Odometry on 'odom', chained with TF to the image's frame",
-                          choices=POSE_SOURCES)
-    map_frame: str = _p("map", "frame of poses, clouds and markers")
-    tf_wait: float = _p(0.5, "seconds a frame waits for its transform; then it is dropped and counted "
-                        "(diagnostics 'tf')", 0.0, 60.0)
-    tf_cache_time: float = _p(10.0, "seconds of dynamic TF history kept", 0.1, 3600.0)
-    tf_max_gap: float = _p(0.5, "a dynamic TF link is not interpolated across a longer gap between samples "
-                           "(s); 0 = any gap, as tf2", 0.0, 3600.0)
-    tf_extrapolation: float = _p(0.0, "seconds past a link's newest (or before its oldest) sample where its "
-                                 "nearest sample is used (tf2: 0)", 0.0, 60.0)
-    sync_queue_size: int = _p(10, "messages per input kept by the approximate time synchroniser", 1, 1000)
-    sync_slop: float = _p(0.05, "largest stamp spread (s) of one synchronised colour/depth/info set", 0.0, 10.0)
-    frame_queue_size: int = _p(4, "frames waiting for the mapper; when full the oldest is dropped and counted",
-                               1, 100000)
+    pose_source: str = _from(InputConfig, "pose_source")
+    map_frame: str = _from(InputConfig, "map_frame")
+    tf_wait: float = _from(InputConfig, "tf_wait")
+    tf_cache_time: float = _from(InputConfig, "tf_cache_time")
+    tf_max_gap: float = _from(InputConfig, "tf_max_gap")
+    tf_extrapolation: float = _from(InputConfig, "tf_extrapolation")
+    sync_queue_size: int = _from(InputConfig, "sync_queue_size")
+    sync_slop: float = _from(InputConfig, "sync_slop")
+    frame_queue_size: int = _from(WorkerConfig, "queue_size")
     rg_config: str = _p("", "rg YAML configuration (map and field sections); empty = defaults")
     map_width: int = _p(0, "mapper working width in pixels (0 = rg_config's map.width)", 0, 8192)
     iters_per_keyframe: int = _p(0, "optimisation iterations per keyframe (0 = rg_config's)", 0, 100000)
@@ -66,18 +106,17 @@ class NodeParams:
     load_map: str = _p("", "map file loaded at start-up (empty = start with an empty map)")
     save_path: str = _p("rg_map.pt", "where ~/save_map (and the save on shutdown) writes the map")
     save_on_shutdown: bool = _p(False, "save the map to save_path when the node stops (SIGINT, SIGTERM)")
-    features: bool = _p(True, "keyframe supervision and feature-field training while the mapper is idle")
-    mask_generator: str = _p("rgbd", "mask generator backend of the supervision")
-    embedder: str = _p("conse", "image-text embedder backend of the supervision")
+    features: bool = _from(WorkerConfig, "features")
+    mask_generator: str = _from(WorkerConfig, "mask_generator")
+    embedder: str = _from(WorkerConfig, "embedder")
     preset: str = _p("", "named models (rg models): offline, paper, paper_cpu; overrides mask_generator, "
                      "embedder and the reasoner (empty = those parameters)")
-    train_slice: float = _p(0.5, "seconds of field training per idle slice", 0.01, 600.0)
-    train_seconds_max: float = _p(30.0, "field training seconds after each supervision change (0 = whenever "
-                                  "idle)", 0.0, 1e6)
-    refine_iters: int = _p(0, "map refinement iterations per idle slice (0 = off)", 0, 100000)
+    train_slice: float = _from(WorkerConfig, "train_slice")
+    train_seconds_max: float = _from(WorkerConfig, "train_seconds_max")
+    refine_iters: int = _from(WorkerConfig, "refine_iters")
     torch_threads: int = _p(0, "torch intra-op threads (0 = torch's default)", 0, 1024)
     max_results: int = _p(1, "objects returned when a request says max_results = 0", 1, 1000)
-    max_query_chars: int = _p(1000, "longer queries are refused", 1, 1_000_000)
+    max_query_chars: int = _from(GroundConfig, "max_query_chars")
     ground_timeout: float = _p(30.0, "seconds a grounding call waits for the map lock", 0.1, 3600.0)
     mask_rate: float = _p(2.0, "Hz of ~/amodal_mask and ~/visible_mask for the last grounded targets (0 = off)",
                           0.0, 100.0)
@@ -88,6 +127,13 @@ class NodeParams:
     camera_info_timeout: float = _p(5.0, "warn when images arrive but no CameraInfo came for this long (s)",
                                     0.0, 3600.0)
     marker_alpha: float = _p(0.25, "opacity of the grounded boxes (CUBE markers)", 0.0, 1.0)
+
+    def input_config(self) -> InputConfig:
+        return InputConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(InputConfig)})
+
+    def worker_config(self) -> WorkerConfig:
+        names = {f.name for f in dataclasses.fields(WorkerConfig)} - {"queue_size", "idle_wait"}
+        return WorkerConfig(queue_size=self.frame_queue_size, **{n: getattr(self, n) for n in names})
 
 
 PARAM_FIELDS = {f.name: f for f in dataclasses.fields(NodeParams)}

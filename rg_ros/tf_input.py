@@ -6,21 +6,17 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from rg_core.geometry.tf_buffer import TFError
+from rg_core.geometry.tf_buffer import GapError, LoopError, PastExtrapolationError, TFError
+from rg_core.io.ros_input import add_tf_message, resolve_pose
 
-from . import convert as cv
 from .worker import Frame
 
 
 def _final(exc: TFError) -> bool:
     """A lookup error that waiting cannot cure: data already past the stamp (a gap, the past) or a loop."""
-    from rg_core.geometry.tf_buffer import LoopError
-
-    msg = str(exc)
-    return isinstance(exc, LoopError) or "falls in a gap" in msg or "extrapolation into the past" in msg
+    return isinstance(exc, (LoopError, GapError, PastExtrapolationError))
 
 
 class TFInput:
@@ -46,29 +42,10 @@ class TFInput:
         self.create_timer(0.05, self._try_pending, callback_group=group)
 
     def _on_tf(self, msg, static: bool) -> None:
-        for ts in msg.transforms:
-            tr = ts.transform
-            try:
-                self.tf.set_transform(ts.header.frame_id, ts.child_frame_id, cv.from_time(ts.header.stamp),
-                                      [tr.translation.x, tr.translation.y, tr.translation.z],
-                                      [tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w], static=static)
-            except TFError as exc:
-                self._warn("tf_input", f"transform refused ({'/tf_static' if static else '/tf'}): {exc}")
+        for err in add_tf_message(self.tf, msg, static):
+            self._warn("tf_input", f"transform refused ({'/tf_static' if static else '/tf'}): {err}")
         if self._tf_pending:
             self._try_pending()
-
-    def _pose_of(self, frame: Frame, pose_msg) -> np.ndarray:
-        """cam_to_world of a frame from TF (pose_source tf) or odometry + TF; raises TFError / ValueError."""
-        from rg_core.geometry.conventions import check_rigid
-
-        p = self.p
-        if not frame.frame_id:
-            raise TFError("the colour image has an empty header.frame_id; TF needs its optical frame")
-        if p.pose_source == "tf":
-            return check_rigid(self.tf.lookup(p.map_frame, frame.frame_id, frame.stamp), "TF pose")
-        from rg_core.io.rosbag import odometry_pose
-
-        return odometry_pose(self.tf, p.map_frame, pose_msg, frame.frame_id, frame.stamp)
 
     def _try_pending(self) -> None:
         """Submit waiting frames whose transform is now known; drop those past their deadline."""
@@ -81,7 +58,7 @@ class TFInput:
         for deadline, frame, extra in self._tf_pending:
             pose_msg, stamp_msg, w, h = extra
             try:
-                frame.cam_to_world = self._pose_of(frame, pose_msg)
+                frame.cam_to_world = resolve_pose(self.tf, self.inputs, frame.frame_id, frame.stamp, pose_msg)
             except TFError as exc:
                 if now < deadline and not _final(exc):
                     keep.append((deadline, frame, extra))

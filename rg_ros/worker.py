@@ -31,6 +31,8 @@ from rg_core.perception.query import query_problem
 from rg_core.map.frames import FrameError
 from rg_core.map.mapper import Mapper
 
+from .params import WorkerConfig
+
 log = logging.getLogger("rg_ros.worker")
 
 
@@ -78,9 +80,11 @@ class FrameQueue:
             return self._items.popleft() if self._items else None
 
     def clear(self) -> int:
+        """Drop every queued item (counted as dropped); returns how many."""
         with self._cond:
             n = len(self._items)
             self._items.clear()
+            self.dropped += n
             return n
 
     def wake(self) -> None:
@@ -90,28 +94,6 @@ class FrameQueue:
     def __len__(self) -> int:
         with self._cond:
             return len(self._items)
-
-
-@dataclass
-class WorkerConfig:
-    """What the worker does besides mapping (the node fills it from its parameters)."""
-
-    queue_size: int = 4
-    """Frames waiting for the mapper; a full queue drops its oldest frame."""
-    features: bool = True
-    """Compute keyframe supervision and train the feature field when idle."""
-    mask_generator: str = "rgbd"
-    """rg_core.perception.masks backend for supervision."""
-    embedder: str = "conse"
-    """rg_core.perception.embed backend for supervision and queries."""
-    train_slice: float = 0.5
-    """Seconds of field training per idle slice (the lock is held for one slice)."""
-    train_seconds_max: float = 30.0
-    """Field training seconds after each supervision change (0: train whenever idle)."""
-    refine_iters: int = 0
-    """Map refinement iterations per idle slice (0: off), at most map.final_iters per keyframe."""
-    idle_wait: float = 0.2
-    """Seconds the worker sleeps waiting for a frame when it has nothing else to do."""
 
 
 class MapWorker:
@@ -294,14 +276,14 @@ class MapWorker:
     # ------------------------------------------------------------------------------ services
 
     def reset(self) -> None:
-        """Empty the map (and the queue); perception models stay loaded."""
+        """Empty the map (and the queue: its frames count as dropped); perception models stay loaded.
+        The frame counters live as long as the worker: mapped + rejected + dropped + queued = received."""
         with self.lock:
             self.queue.clear()
             self.mapper = Mapper(self.cfg.map)
             self.field, self._grounder = None, None
             self._train_seconds, self._train_blocked, self._supervised_count = 0.0, "", 0
             self._refined_iters = 0
-            self.processed = self.rejected = 0
             self.last_error, self.last_result = "", {}
 
     def save(self, path: str | Path) -> Path:

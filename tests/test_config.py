@@ -27,6 +27,8 @@ def test_partial_override_keeps_other_defaults(tmp_path):
     ({"synth": {"ring_radius": [0.1]}}, "synth.ring_radius"),
     ({"synth": {"ring_radius": [0.1, "x"]}}, "synth.ring_radius[1]"),
     ({"synth": 5}, "synth"),
+    ({"map": {"near": float("nan")}}, "map.near"),
+    ({"field": {"seconds": float("inf")}}, "field.seconds"),
 ])
 def test_bad_keys_and_types_name_the_key(data, key):
     with pytest.raises(ConfigError) as info:

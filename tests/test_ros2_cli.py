@@ -221,7 +221,7 @@ def test_ros2_topic_echo_markers_and_amodal_mask(launched):
 def test_ros2_param_describe(launched):
     r = ros2_until(["param", "describe", "/rg_node", "tf_wait", "pose_source"], lambda r: r.returncode == 0)
     assert r.returncode == 0, r.stdout + r.stderr
-    assert "seconds a frame waits for its transform" in r.stdout and "Min value: 0.0" in r.stdout, r.stdout
+    assert "Seconds a frame waits for its transform" in r.stdout and "Min value: 0.0" in r.stdout, r.stdout
     assert "one of: tf, topic, odometry" in r.stdout and "Read only: true" in r.stdout, r.stdout
     r = ros2_until(["param", "get", "/rg_node", "color_transport"], lambda r: r.returncode == 0)
     assert "compressed" in r.stdout, r.stdout + r.stderr

@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 import pytest
-from test_ros_node import ros_args, start, status_values, stop, wait_for, write_params
+from test_ros_node import is_settled, ros_args, start, status_values, stop, wait_for, write_params
 
 pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs is not installed: scripts/bootstrap.sh builds it from msg_tf2/")
 pytest.importorskip("rosbags")
@@ -91,9 +91,11 @@ class BagHarness:
         self.statuses.update(status_values(msg))
         self.status = self.statuses.get("/rg_node", self.status)
 
-    def fresh(self, timeout=15.0):
+    def fresh(self, timeout=15.0, settled=False):
+        """A status sent after now; settled: also every frame received is mapped, rejected or dropped."""
         t = time.monotonic()
-        return wait_for(lambda: self.status if self.status.get("_t", 0) > t else None, timeout, "a fresh status")
+        return wait_for(lambda: self.status if self.status.get("_t", 0) > t and (not settled or is_settled(self.status))
+                        else None, timeout if not settled else max(timeout, 60.0), "a fresh status")
 
     def call(self, client, req, timeout=120.0):
         assert client.wait_for_service(timeout_sec=30), f"{client.srv_name} not discovered"
@@ -215,7 +217,7 @@ def _tf(parent, child, stamp, t=(0.0, 0.0, 0.0), q=(0.0, 0.0, 0.0, 1.0)):
 
 @pytest.mark.parametrize("case", ["unknown_format", "wrong_frame_id", "tf_loop", "nan_transform", "zero_focal"])
 def test_bad_input_keeps_node_and_map(h, case):
-    before = h.fresh()
+    before = h.fresh(settled=True)   # not while the last good frame is still being mapped
     expect = {"unknown_format": "'h264' is not supported", "wrong_frame_id": "\"camera_nowhere\" passed to lookup",
               "tf_loop": "would close a loop", "nan_transform": "NaN or inf",
               "zero_focal": "focal lengths must be > 0"}[case]

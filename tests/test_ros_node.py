@@ -85,6 +85,11 @@ def stop(proc: subprocess.Popen, timeout: float = 30.0) -> int | None:
     return proc.returncode
 
 
+def is_settled(st: dict) -> bool:
+    """The worker has taken every frame it received: mapped, rejected or dropped (none in flight)."""
+    return st["mapped"] + st["rejected"] + st["dropped"] == st["received"] and st["queue"] == 0
+
+
 def status_values(msg) -> dict[str, dict]:
     """A /diagnostics message -> {node name: {key: value}}: values JSON-decoded where they are JSON,
     plus '_t' (when it arrived, monotonic) and '_message'."""
@@ -160,9 +165,14 @@ class Harness:
     def st(self, name: str = "/rg_node") -> dict:
         return self.status.get(name, {})
 
-    def fresh_status(self, name: str = "/rg_node", timeout: float = 10.0) -> dict:
+    def fresh_status(self, name: str = "/rg_node", timeout: float = 10.0, settled: bool = False) -> dict:
+        """A status sent after now; settled: also every frame received is mapped, rejected or dropped."""
         t = time.monotonic()
-        return wait_for(lambda: self.st(name) if self.st(name).get("_t", 0) > t else None, timeout, f"status of {name}")
+
+        def ok():
+            st = self.st(name)
+            return st if st.get("_t", 0) > t and (not settled or is_settled(st)) else None
+        return wait_for(ok, timeout if not settled else max(timeout, 60.0), f"status of {name}")
 
     def call(self, client, req, timeout: float = 60.0):
         assert client.wait_for_service(timeout_sec=30), f"{client.srv_name} not discovered"
@@ -238,7 +248,7 @@ def test_replayed_frames_build_the_map(h):
 
 @pytest.mark.parametrize("case", ["encoding", "sizes", "nan_pose", "quaternion", "pose_frame"])
 def test_bad_input_keeps_node_and_map(h, case):
-    before = h.fresh_status()
+    before = h.fresh_status(settled=True)   # not while the last good frame is still being mapped
     color, depth, info, pose = h.frame(0)
     expect = {"encoding": "colour image rejected", "sizes": "colour is 160x120 but depth is 80x60",
               "nan_pose": "NaN", "quaternion": "quaternion norm", "pose_frame": "pose is in frame 'odom'"}[case]

@@ -142,6 +142,8 @@ def test_reset_save_and_snapshot(worker, tmp_path):
     worker.reset()
     st = worker.stats()
     assert st["keyframes"] == 0 and st["gaussians"] == 0 and st["frames"] == 0
+    # the frame accounting outlives a reset (queued frames it clears count as dropped)
+    assert st["mapped"] == 1 and st["mapped"] + st["rejected"] + st["dropped"] + st["queue"] == st["received"]
     assert worker.snapshot(timeout=10)[0].shape == (0, 3)
     worker.submit(make_frame(5.0))
     assert wait_for(lambda: worker.stats()["keyframes"] == 1)
@@ -160,3 +162,12 @@ def test_perception_failure_keeps_mapping():
         assert wait_for(lambda: w.stats()["keyframes"] == 1)
     finally:
         assert w.stop(timeout=20)
+
+
+def test_reset_counts_the_frames_it_clears_as_dropped():
+    w = MapWorker(small_cfg(), WorkerConfig(queue_size=4, features=False))   # not started: frames stay queued
+    for i in range(3):
+        w.submit(make_frame(float(i)))
+    w.reset()
+    st = w.stats()
+    assert st["queue"] == 0 and st["dropped"] == 3 and st["received"] == 3 and st["mapped"] == 0

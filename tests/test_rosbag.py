@@ -186,8 +186,11 @@ def test_wrong_topics_and_frames(bag, tmp_path):
 
     with pytest.raises(SceneError, match=r"camera_depth_optical_frame.*does not exist"):
         read_bag(rewrite(bag, tmp_path / "wrongframe", wrong_frame))
-    with pytest.raises(ValueError, match="pose_source 'gps'"):
+    with pytest.raises(ValueError, match="pose_source: expected 'tf', 'topic' or 'odometry', got 'gps'"):
         BagOptions(pose_source="gps")
+    with pytest.raises(ValueError, match=r"tf_max_gap: expected greater than or equal to 0, got -1.*sync_slop: expected a "
+                       "finite number, got nan"):
+        BagOptions(tf_max_gap=-1, sync_slop=float("nan"))
 
 
 def test_tf_loop_nan_transform_and_zero_focal_length(bag, tmp_path):

@@ -45,6 +45,14 @@ class ExtrapolationError(TFError):
     """The requested time is outside the samples of a link (or inside a gap wider than max_gap)."""
 
 
+class PastExtrapolationError(ExtrapolationError):
+    """The requested time is older than a link's oldest sample: waiting cannot cure it."""
+
+
+class GapError(ExtrapolationError):
+    """The requested time falls between two samples further apart than max_gap: waiting cannot cure it."""
+
+
 class LoopError(TFError):
     """The frames' parent links form a cycle."""
 
@@ -267,7 +275,7 @@ class TFBuffer:
         if stamp < lo:
             if lo - stamp <= self.extrapolation_limit:
                 return samples[0].t, samples[0].q
-            raise ExtrapolationError(f"Lookup would require extrapolation into the past. Requested time {stamp:.9f} "
+            raise PastExtrapolationError(f"Lookup would require extrapolation into the past. Requested time {stamp:.9f} "
                                      f"but the earliest data is at time {lo:.9f}, {ctx}")
         if stamp > hi:
             if stamp - hi <= self.extrapolation_limit:
@@ -279,7 +287,7 @@ class TFBuffer:
             return samples[i].t, samples[i].q
         s0, s1 = samples[i - 1], samples[i]
         if self.max_gap > 0 and s1.stamp - s0.stamp > self.max_gap:
-            raise ExtrapolationError(f"Lookup at time {stamp:.9f} falls in a gap of {s1.stamp - s0.stamp:.3f} s "
+            raise GapError(f"Lookup at time {stamp:.9f} falls in a gap of {s1.stamp - s0.stamp:.3f} s "
                                      f"between samples at {s0.stamp:.9f} and {s1.stamp:.9f} (max_gap "
                                      f"{self.max_gap:g} s), {ctx}")
         if s0.parent != s1.parent:   # reparented between the samples: tf2 uses the earlier one

@@ -19,22 +19,20 @@ when the bag is):
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ..geometry.conventions import PoseError, check_rigid
-from ..geometry.rotations import checked_quat_to_rot
+from ..config import section
 from ..geometry.tf_buffer import TFBuffer, TFError
 from . import ros_images
+from .ros_input import InputConfig, add_tf_message, resolve_pose, stamp_of
 from .images import SceneError
 from .scene import Frame, Intrinsics, Scene
 from .sync import ApproximateTimeSync
 
 BAG_SUFFIXES = (".mcap", ".db3")
-POSE_SOURCES = ("tf", "topic", "odometry")
 T_IMAGE = "sensor_msgs/msg/Image"
 T_COMPRESSED = "sensor_msgs/msg/CompressedImage"
 T_INFO = "sensor_msgs/msg/CameraInfo"
@@ -43,75 +41,25 @@ T_POSE = "geometry_msgs/msg/PoseStamped"
 T_ODOM = "nav_msgs/msg/Odometry"
 
 
-@dataclass
-class BagOptions:
-    """How a bag is read (`rg map BAG` options; rg-replay and the node have the same names)."""
+@section
+class BagOptions(InputConfig):
+    """How a bag is read (`rg map BAG` options): the topics, empty = auto-detected, and the input
+    options the node has too."""
 
     color_topic: str = ""
-    """Image or CompressedImage (jpeg/png); empty = auto-detect."""
+    """Image or CompressedImage (jpeg/png)."""
     depth_topic: str = ""
-    """Image 16UC1/32FC1 or CompressedImage compressedDepth, registered to colour; empty = auto-detect."""
+    """Image 16UC1/32FC1 or CompressedImage compressedDepth, registered to colour."""
     camera_info_topic: str = ""
-    """CameraInfo of the colour camera; empty = auto-detect (next to the colour topic)."""
-    pose_source: str = "tf"
-    """tf (map_frame <- the image's frame_id), topic (PoseStamped) or odometry (nav_msgs/Odometry)."""
+    """CameraInfo of the colour camera (auto: next to the colour topic)."""
     pose_topic: str = ""
-    """PoseStamped (topic) or Odometry (odometry) topic; empty = auto-detect."""
-    map_frame: str = "map"
-    """Frame the poses are expressed in."""
-    tf_max_gap: float = 0.5
-    """Refuse to interpolate a dynamic TF link across a gap longer than this (s); 0 = any gap (tf2)."""
-    tf_extrapolation: float = 0.0
-    """Use the nearest TF sample this close (s) outside a link's samples (tf2: 0)."""
-    sync_slop: float = 0.05
-    """Largest stamp spread (s) of a colour/depth/info set."""
-    sync_queue_size: int = 10
-    """Messages per topic held by the synchroniser."""
-
-    def __post_init__(self):
-        if self.pose_source not in POSE_SOURCES:
-            raise ValueError(f"pose_source '{self.pose_source}' is not one of {', '.join(POSE_SOURCES)}")
-        for k in ("tf_max_gap", "tf_extrapolation", "sync_slop"):
-            v = getattr(self, k)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"{k} must be a finite number >= 0, got {v!r}")
+    """PoseStamped (pose_source topic) or Odometry (odometry) topic."""
 
 
 def is_bag(path: str | Path) -> bool:
     """A .mcap/.db3 file or a rosbag2 folder (metadata.yaml)."""
     p = Path(path)
     return (p.is_file() and p.suffix in BAG_SUFFIXES) or (p.is_dir() and (p / "metadata.yaml").is_file())
-
-
-def stamp_of(msg) -> float:
-    s = msg.header.stamp
-    return s.sec + s.nanosec * 1e-9
-
-
-def transform_to_matrix(tr) -> np.ndarray:
-    """geometry_msgs/Transform or Pose (rosbags or rclpy) -> [4, 4]; PoseError on NaN / bad quaternion."""
-    field, t, r = (("position", tr.position, tr.orientation) if hasattr(tr, "position")
-                   else ("translation", tr.translation, tr.rotation))
-    v = np.array([t.x, t.y, t.z], np.float64)
-    if not np.isfinite(v).all():
-        raise PoseError(f"{field} contains NaN or inf: {v.tolist()}")
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = checked_quat_to_rot([r.x, r.y, r.z, r.w]), v
-    return T
-
-
-def add_tf_message(buf: TFBuffer, msg, static: bool) -> list[str]:
-    """Every TransformStamped of a TFMessage into `buf`; returns the errors of refused ones."""
-    errors = []
-    for ts in msg.transforms:
-        tr = ts.transform
-        try:
-            buf.set_transform(ts.header.frame_id, ts.child_frame_id, stamp_of(ts),
-                              [tr.translation.x, tr.translation.y, tr.translation.z],
-                              [tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w], static=static)
-        except TFError as exc:
-            errors.append(str(exc))
-    return errors
 
 
 # ------------------------------------------------------------------------------ topic detection
@@ -204,20 +152,18 @@ class BagFrame(Frame):
     where: str = ""
 
     def load_rgb(self) -> np.ndarray:  # [H, W, 3] uint8
-        try:
-            rgb = ros_images.decode_color(self.color_msg)
-        except ValueError as exc:
-            raise SceneError(f"{self.where}: colour image: {exc}") from exc
-        self._check_size(rgb, self.image_path)
-        return rgb
+        return self._decode(ros_images.decode_color, self.color_msg, "colour", self.image_path)
 
     def load_depth(self) -> np.ndarray:  # [H, W] float32 metres
+        return self._decode(ros_images.decode_depth, self.depth_msg, "depth", self.depth_path)
+
+    def _decode(self, decode, msg, what: str, path: Path) -> np.ndarray:
         try:
-            depth = ros_images.decode_depth(self.depth_msg)
+            img = decode(msg)
         except ValueError as exc:
-            raise SceneError(f"{self.where}: depth image: {exc}") from exc
-        self._check_size(depth, self.depth_path)
-        return depth
+            raise SceneError(f"{self.where}: {what} image: {exc}") from exc
+        self._check_size(img, path)
+        return img
 
 
 def _check_encodings(msg, role: str, topic: str) -> None:
@@ -342,7 +288,7 @@ def read_bag(path: str | Path, opts: BagOptions | None = None, test_every: int =
                 continue
             intr = Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), w, h)
             try:
-                c2w = _pose(buf, opts, color, s.msgs[3] if len(s.msgs) > 3 else None, t)
+                c2w = resolve_pose(buf, opts, color.header.frame_id, t, s.msgs[3] if len(s.msgs) > 3 else None)
             except TFError as exc:
                 drops.add("tf", f"{where}: {exc}")
                 continue
@@ -373,26 +319,3 @@ def read_bag(path: str | Path, opts: BagOptions | None = None, test_every: int =
 @dataclass
 class BagScene(Scene):
     info: dict = field(default_factory=dict)
-
-
-def _pose(buf: TFBuffer, opts: BagOptions, color, pose_msg, t: float) -> np.ndarray:
-    """cam_to_world [4, 4] (OpenCV axes = the optical frame's) of the colour image at stamp t."""
-    cam = color.header.frame_id
-    if opts.pose_source == "tf":
-        if not cam:
-            raise TFError("the colour image has an empty header.frame_id; TF needs its optical frame")
-        return check_rigid(buf.lookup(opts.map_frame, cam, t), f"TF {opts.map_frame} <- {cam}")
-    if opts.pose_source == "topic":
-        if pose_msg.header.frame_id.lstrip("/") != opts.map_frame.lstrip("/"):
-            raise ValueError(f"pose is in frame '{pose_msg.header.frame_id}', expected '{opts.map_frame}' (map_frame)")
-        return transform_to_matrix(pose_msg.pose)
-    return odometry_pose(buf, opts.map_frame, pose_msg, cam, t)
-
-
-def odometry_pose(buf: TFBuffer, map_frame: str, odom, cam_frame: str, t: float) -> np.ndarray:
-    """map <- camera from nav_msgs/Odometry (odom frame <- child) chained with TF where frames differ."""
-    T_oc = transform_to_matrix(odom.pose.pose)   # header.frame_id <- child_frame_id
-    parent, child = odom.header.frame_id.lstrip("/"), odom.child_frame_id.lstrip("/")
-    T_mo = np.eye(4) if parent == map_frame.lstrip("/") else buf.lookup(map_frame, parent, t)
-    T_cc = np.eye(4) if (not cam_frame or child == cam_frame.lstrip("/")) else buf.lookup(child, cam_frame, t)
-    return check_rigid(T_mo @ T_oc @ T_cc, "odometry pose")

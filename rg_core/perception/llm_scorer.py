@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import MAX_QUERY_CHARS
 from .masks import BackendError
 
 log = logging.getLogger(__name__)
@@ -85,7 +86,7 @@ class LLMChoiceScorer:
 
     def __init__(self, model_path: str | Path | None = None, n_ctx: int = 2048, n_threads: int = 2,
                  n_batch: int = 512, reduce: str = "sum", end_token: bool = True, knowledge_max_names: int = 0,
-                 max_query_chars: int = 1000, max_names: int = 512, memo_size: int = 256):
+                 max_query_chars: int = MAX_QUERY_CHARS, max_names: int = 512, memo_size: int = 256):
         if reduce not in ("sum", "mean"):
             raise ValueError(f"reduce must be 'sum' or 'mean', got {reduce!r}")
         if importlib.util.find_spec("llama_cpp") is None:
@@ -358,3 +359,13 @@ class LLMChoiceScorer:
         self._lc.llama_memory_clear(self._mem, True)
         self._cached, self._last_logp = [], None
         return self._reduce(lps)
+
+
+def scorer_from_config(cfg) -> dict:
+    """{"llm_scorer": scorer} or {} with the reason logged: a missing runner or model leaves the
+    text reasoner answering on text evidence alone."""
+    try:
+        return {"llm_scorer": LLMChoiceScorer(model_path=cfg.llm_model_path or None)}
+    except Exception as exc:  # noqa: BLE001 - ImportError, BackendError, a corrupt model file
+        log.warning("LLM scorer unavailable, text evidence only: %s: %s", type(exc).__name__, exc)
+        return {}

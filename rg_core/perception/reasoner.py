@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from ..config import CACHE_DIR
+from ..config import CACHE_DIR, MAX_QUERY_CHARS
 from .explicit import EXPLICIT_SIMILARITY, explicit_match
 from .masks import BackendError
 from .query import check_query, parse_mode
@@ -35,7 +35,6 @@ FIT = {"name_weight": 0.5, "min_similarity": 0.0, "absent_margin": 0.35, "backgr
        "prior_trust": 0.4}
 
 NAME_TEMPLATE = "a {}"          # measured: 57/101 top-1 vs 51/101 for bare names
-BACKGROUND_EXCLUDE = 0.6        # background names this close to a vocabulary name count as synonyms
 CONFIDENCE_SCALE = 0.05         # confidence = 1 - exp(-margin / scale): margin 0.05 -> 0.63
 
 __all__ = ["Reasoning", "Reasoner", "TextReasoner", "make_reasoner", "register", "validate", "reasoner_from_config",
@@ -54,7 +53,7 @@ class Reasoning:
     similarity: float = 0.0     # text similarity of query and target (best one when rejected)
 
 
-def validate(query: str, vocabulary: list[str], max_query_chars: int = 1000, mode: str = "auto") -> list[str]:
+def validate(query: str, vocabulary: list[str], max_query_chars: int = MAX_QUERY_CHARS, mode: str = "auto") -> list[str]:
     """Reject unusable input with a message saying what was expected; returns the clean vocabulary
     (stripped, de-duplicated, order kept)."""
     check_query(query, max_query_chars)
@@ -149,7 +148,7 @@ class TextReasoner(Reasoner):
     name = "text"
 
     def __init__(self, top_k: int = 3, min_similarity: float = FIT["min_similarity"],
-                 absent_margin: float = FIT["absent_margin"], max_query_chars: int = 1000,
+                 absent_margin: float = FIT["absent_margin"], max_query_chars: int = MAX_QUERY_CHARS,
                  extra_vocabulary: list[str] | tuple[str, ...] = (), text_model=None,
                  name_weight: float = FIT["name_weight"], background_exclude: float = FIT["background_exclude"],
                  use_knowledge: bool = True, knowledge_path: str = "", cache_dir: str = CACHE_DIR,
@@ -186,6 +185,11 @@ class TextReasoner(Reasoner):
             self.prior = None
         self._bg_on = absent_margin is not None and absent_margin >= 0
         self._bg = None
+
+    @classmethod
+    def from_config(cls, cfg) -> "TextReasoner":
+        """The text reasoner a ReasonConfig describes (encoder, its fit and prior, LLM scorer)."""
+        return cls(**_text_kwargs(cfg))
 
     def vocabulary(self, vocabulary: list[str]) -> list[str]:
         return list(dict.fromkeys(list(vocabulary) + self.extra))
@@ -354,20 +358,9 @@ def make_reasoner(name: str = "text", **kwargs) -> Reasoner:
     return make_registered("reasoner", _REGISTRY, name, **kwargs)
 
 
-def llm_scorer_from_config(cfg) -> dict:
-    """{"llm_scorer": scorer} or {} with the reason logged: a missing runner or model leaves the
-    text reasoner answering on text evidence alone."""
-    try:
-        from .llm_scorer import LLMChoiceScorer
-
-        return {"llm_scorer": LLMChoiceScorer(model_path=cfg.llm_model_path or None)}
-    except Exception as exc:  # noqa: BLE001 - ImportError, BackendError, a corrupt model file
-        log.warning("LLM scorer unavailable, text evidence only: %s: %s", type(exc).__name__, exc)
-        return {}
-
-
-def reasoner_from_config(cfg) -> Reasoner:
-    """Build the reasoner a ReasonConfig (rg_core.config) describes."""
+def _text_kwargs(cfg) -> dict:
+    """TextReasoner arguments from a ReasonConfig: its thresholds, or the chosen encoder's own fit
+    and open-set prior, and the LLM scorer when configured."""
     text = dict(top_k=cfg.top_k, min_similarity=cfg.min_similarity, absent_margin=cfg.absent_margin,
                 max_query_chars=cfg.max_query_chars, extra_vocabulary=list(cfg.extra_vocabulary),
                 name_weight=cfg.name_weight, background_exclude=cfg.background_exclude,
@@ -384,7 +377,16 @@ def reasoner_from_config(cfg) -> Reasoner:
         else:
             text["domain_prior_path"] = str(prior)
     if cfg.backend == "text" and cfg.llm_scorer and cfg.llm_weight:
-        text.update(llm_scorer_from_config(cfg), llm_weight=cfg.llm_weight)
+        from .llm_scorer import scorer_from_config
+
+        text.update(scorer_from_config(cfg), llm_weight=cfg.llm_weight)
+    return text
+
+
+def reasoner_from_config(cfg) -> Reasoner:
+    """Build the reasoner a ReasonConfig (rg_core.config) describes; LLM backends fall back to the
+    text reasoner of the same config."""
+    text = _text_kwargs(cfg)
     if cfg.backend == "text":
         return make_reasoner("text", **text)
     fallback = TextReasoner(**text)

