@@ -59,7 +59,8 @@ stamp_of() { cat "$@" "$ROOT/setup.py" "$ROOT/scripts/bootstrap.sh" \
   2>/dev/null | sha256sum | cut -d' ' -f1; }
 full_stamp() { stamp_of "$ROOT"/requirements*.txt \
   $(find "$ROOT/msg" -path "$ROOT/msg/build" -prune -o -type f -print 2>/dev/null | sort) \
-  $(find "$ROOT/msg_tf2" -path "$ROOT/msg_tf2/build" -prune -o -type f -print 2>/dev/null | sort); }
+  $(find "$ROOT/msg_tf2" -path "$ROOT/msg_tf2/build" -prune -o -type f -print 2>/dev/null | sort) \
+  $(find "$ROOT/cmake" -type f 2>/dev/null | sort); }  # cmake/: the interfaces' shared build recipe
 install_core() {  # what `rg demo` uses: the pinned stack and rg_core (editable)
   local t0=$SECONDS
   "$VENV/bin/python" -m pip install -q --upgrade pip setuptools wheel >&2

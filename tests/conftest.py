@@ -46,6 +46,17 @@ def need_rgbd(name: str) -> Path:
     return path
 
 
+def assert_load_errors(load, error: type[Exception], folder: Path, cases) -> None:
+    """A file loader names what is wrong with a file: for each (file name, text or None for a missing
+    file, regex), `load(folder / name)` raises `error` matching regex. One table per loader instead of
+    the same write-then-pytest.raises steps in each loader's tests (config, knowledge)."""
+    for name, text, match in cases:
+        if text is not None:
+            (folder / name).write_text(text)
+        with pytest.raises(error, match=match):
+            load(folder / name)
+
+
 @pytest.fixture(scope="session")
 def conse_embedder():
     """The packaged offline embedder (loads in about 10 s; shared by the session)."""

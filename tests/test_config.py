@@ -1,5 +1,6 @@
 import pytest
 
+from conftest import assert_load_errors
 from rg_core.config import ConfigError, RGConfig, config_from_dict, config_to_dict, load_config
 
 
@@ -37,13 +38,8 @@ def test_bad_keys_and_types_name_the_key(data, key):
 
 
 def test_bad_file_errors_name_the_file(tmp_path):
-    with pytest.raises(ConfigError, match="not found"):
-        load_config(tmp_path / "missing.yaml")
-    bad = tmp_path / "bad.yaml"
-    bad.write_text("synth: [unclosed\n")
-    with pytest.raises(ConfigError, match="bad.yaml: not valid YAML"):
-        load_config(bad)
-    typo = tmp_path / "typo.yaml"
-    typo.write_text("demo:\n  seeds: 1\n")
-    with pytest.raises(ConfigError, match=r"typo.yaml: demo.seeds: unknown key"):
-        load_config(typo)
+    assert_load_errors(load_config, ConfigError, tmp_path, [
+        ("missing.yaml", None, "not found"),
+        ("bad.yaml", "synth: [unclosed\n", "bad.yaml: not valid YAML"),
+        ("typo.yaml", "demo:\n  seeds: 1\n", r"typo.yaml: demo.seeds: unknown key"),
+    ])

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import assert_load_errors
 from rg_core.eval.reasoning import load_descriptions, scene_vocabularies, split
 from rg_core.perception.knowledge import DEFAULT_PATH, KnowledgeError, load_knowledge
 from rg_core.perception.reason_scoring import combine
@@ -59,15 +60,11 @@ def test_knowledge_file_matches_wordnet():
 
 
 def test_knowledge_file_errors(tmp_path):
-    with pytest.raises(KnowledgeError, match="not found"):
-        load_knowledge(tmp_path / "none.json")
-    bad = tmp_path / "bad.json"
-    bad.write_text("{not json")
-    with pytest.raises(KnowledgeError, match="not valid JSON"):
-        load_knowledge(bad)
-    bad.write_text(json.dumps({"names": {}, "imagenet": []}))
-    with pytest.raises(KnowledgeError, match="1000 entries"):
-        load_knowledge(bad)
+    assert_load_errors(load_knowledge, KnowledgeError, tmp_path, [
+        ("none.json", None, "not found"),
+        ("bad.json", "{not json", "not valid JSON"),
+        ("bad.json", json.dumps({"names": {}, "imagenet": []}), "1000 entries"),
+    ])
 
 
 def test_combine_and_cache(text, tmp_path):

@@ -37,16 +37,23 @@ def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None = 
         fh.write(rec.tobytes())
 
 
-def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """-> points [N, 3] float32, colors [N, 3] uint8, for PLY files this module writes."""
-    path = Path(path)
+def _read_header(path: Path, eol: bytes) -> tuple[bytes, int, list[str]]:
+    """-> (the file's bytes, where `end_header` starts, the header lines before it); SceneError when
+    the file is missing or does not start like a PLY. Both readers open files this way; `eol` b"\n"
+    holds `ply` and `end_header` to write_ply's own line ends, b"" accepts any line end."""
     if not path.is_file():
         raise SceneError(f"{path}: file not found")
     data = path.read_bytes()
-    end = data.find(b"end_header\n")
-    if not data.startswith(b"ply\n") or end < 0:
+    end = data.find(b"end_header" + eol)
+    if not data.startswith(b"ply" + eol) or end < 0:
         raise SceneError(f"{path}: not a PLY file")
-    header = data[:end].decode("ascii", errors="replace").splitlines()
+    return data, end, data[:end].decode("ascii", errors="replace").splitlines()
+
+
+def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """-> points [N, 3] float32, colors [N, 3] uint8, for PLY files this module writes."""
+    path = Path(path)
+    data, end, header = _read_header(path, b"\n")
     if "format binary_little_endian 1.0" not in header:
         raise SceneError(f"{path}: only binary little-endian PLY from write_ply is supported")
     n = next(int(ln.split()[2]) for ln in header if ln.startswith("element vertex"))
@@ -69,14 +76,8 @@ def read_ply_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     float64 (file units), triangles [F, 3] int64 (empty when the file has no faces). Faces must be
     triangles; extra vertex properties (normals, colours, texture coordinates) are skipped."""
     path = Path(path)
-    if not path.is_file():
-        raise SceneError(f"{path}: file not found")
-    data = path.read_bytes()
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
-        raise SceneError(f"{path}: not a PLY file")
+    data, end, header = _read_header(path, b"")
     body_start = data.index(b"\n", end) + 1
-    header = data[:end].decode("ascii", errors="replace").splitlines()
     fmt = next((ln.split()[1] for ln in header if ln.startswith("format")), "")
     if fmt not in ("binary_little_endian", "ascii"):
         raise SceneError(f"{path}: PLY format {fmt!r} not supported (binary_little_endian or ascii)")

@@ -54,61 +54,63 @@ def hf_config(oc: dict):
     return CLIPConfig(text_config=text, vision_config=vision, projection_dim=embed)
 
 
+_TOWERS = (("vision", "visual.transformer.resblocks.", "vision_model.encoder.layers."),
+           ("text", "transformer.resblocks.", "text_model.encoder.layers."))
+
+_TOP = (  # OpenCLIP name, transformers name, transposed (`proj` matrices <-> Linear weights)
+    ("visual.class_embedding", "vision_model.embeddings.class_embedding", False),
+    ("visual.conv1.weight", "vision_model.embeddings.patch_embedding.weight", False),
+    ("visual.positional_embedding", "vision_model.embeddings.position_embedding.weight", False),
+    ("visual.ln_pre.weight", "vision_model.pre_layrnorm.weight", False),
+    ("visual.ln_pre.bias", "vision_model.pre_layrnorm.bias", False),
+    ("visual.ln_post.weight", "vision_model.post_layernorm.weight", False),
+    ("visual.ln_post.bias", "vision_model.post_layernorm.bias", False),
+    ("visual.proj", "visual_projection.weight", True),
+    ("token_embedding.weight", "text_model.embeddings.token_embedding.weight", False),
+    ("positional_embedding", "text_model.embeddings.position_embedding.weight", False),
+    ("ln_final.weight", "text_model.final_layer_norm.weight", False),
+    ("ln_final.bias", "text_model.final_layer_norm.bias", False),
+    ("text_projection", "text_projection.weight", True),
+    ("logit_scale", "logit_scale", False),
+)
+
+
+def _layer_prefixes(cfg):
+    """(OpenCLIP, transformers) key prefixes of every residual block, vision tower then text tower:
+    the one walk over the layers that both directions of the conversion share."""
+    for tower, pre, hf in _TOWERS:
+        for i in range((cfg.vision_config if tower == "vision" else cfg.text_config).num_hidden_layers):
+            yield f"{pre}{i}.", f"{hf}{i}."
+
+
+def _top_level(sd: dict, to_hf: bool) -> dict:
+    """The tensors outside the residual blocks (embeddings, pre/post norms, projections,
+    logit_scale), renamed by `_TOP` in either direction; the same table serves both."""
+    pairs = ((o, h, t) if to_hf else (h, o, t) for o, h, t in _TOP)
+    return {dst: sd[src].T if t else sd[src] for src, dst, t in pairs}
+
+
 def openclip_to_hf(sd: dict, cfg) -> dict:
     """OpenCLIP state dict -> transformers CLIPModel state dict."""
     out = {}
-    for tower, pre, hf in (("vision", "visual.transformer.resblocks.", "vision_model.encoder.layers."),
-                           ("text", "transformer.resblocks.", "text_model.encoder.layers.")):
-        n = (cfg.vision_config if tower == "vision" else cfg.text_config).num_hidden_layers
-        for i in range(n):
-            p, h = f"{pre}{i}.", f"{hf}{i}."
-            for a, b in _BLOCK.items():
-                out[h + b] = sd[p + a]
-            for j, (w, bias) in enumerate(zip(sd[p + "attn.in_proj_weight"].chunk(3), sd[p + "attn.in_proj_bias"].chunk(3))):
-                out[f"{h}self_attn.{'qkv'[j]}_proj.weight"], out[f"{h}self_attn.{'qkv'[j]}_proj.bias"] = w, bias
-    out.update({
-        "vision_model.embeddings.class_embedding": sd["visual.class_embedding"],
-        "vision_model.embeddings.patch_embedding.weight": sd["visual.conv1.weight"],
-        "vision_model.embeddings.position_embedding.weight": sd["visual.positional_embedding"],
-        "vision_model.pre_layrnorm.weight": sd["visual.ln_pre.weight"], "vision_model.pre_layrnorm.bias": sd["visual.ln_pre.bias"],
-        "vision_model.post_layernorm.weight": sd["visual.ln_post.weight"],
-        "vision_model.post_layernorm.bias": sd["visual.ln_post.bias"],
-        "visual_projection.weight": sd["visual.proj"].T,
-        "text_model.embeddings.token_embedding.weight": sd["token_embedding.weight"],
-        "text_model.embeddings.position_embedding.weight": sd["positional_embedding"],
-        "text_model.final_layer_norm.weight": sd["ln_final.weight"], "text_model.final_layer_norm.bias": sd["ln_final.bias"],
-        "text_projection.weight": sd["text_projection"].T,
-        "logit_scale": sd["logit_scale"],
-    })
+    for p, h in _layer_prefixes(cfg):
+        for a, b in _BLOCK.items():
+            out[h + b] = sd[p + a]
+        for j, (w, bias) in enumerate(zip(sd[p + "attn.in_proj_weight"].chunk(3), sd[p + "attn.in_proj_bias"].chunk(3))):
+            out[f"{h}self_attn.{'qkv'[j]}_proj.weight"], out[f"{h}self_attn.{'qkv'[j]}_proj.bias"] = w, bias
+    out.update(_top_level(sd, to_hf=True))
     return {k: v.contiguous() for k, v in out.items()}
 
 
 def hf_to_openclip(sd: dict, cfg) -> dict:
     """transformers CLIPModel state dict -> OpenCLIP state dict (the inverse of openclip_to_hf)."""
     out = {}
-    for tower, pre, hf in (("vision", "visual.transformer.resblocks.", "vision_model.encoder.layers."),
-                           ("text", "transformer.resblocks.", "text_model.encoder.layers.")):
-        n = (cfg.vision_config if tower == "vision" else cfg.text_config).num_hidden_layers
-        for i in range(n):
-            p, h = f"{pre}{i}.", f"{hf}{i}."
-            for a, b in _BLOCK.items():
-                out[p + a] = sd[h + b]
-            out[p + "attn.in_proj_weight"] = torch.cat([sd[f"{h}self_attn.{c}_proj.weight"] for c in "qkv"])
-            out[p + "attn.in_proj_bias"] = torch.cat([sd[f"{h}self_attn.{c}_proj.bias"] for c in "qkv"])
-    out.update({
-        "visual.class_embedding": sd["vision_model.embeddings.class_embedding"],
-        "visual.conv1.weight": sd["vision_model.embeddings.patch_embedding.weight"],
-        "visual.positional_embedding": sd["vision_model.embeddings.position_embedding.weight"],
-        "visual.ln_pre.weight": sd["vision_model.pre_layrnorm.weight"], "visual.ln_pre.bias": sd["vision_model.pre_layrnorm.bias"],
-        "visual.ln_post.weight": sd["vision_model.post_layernorm.weight"],
-        "visual.ln_post.bias": sd["vision_model.post_layernorm.bias"],
-        "visual.proj": sd["visual_projection.weight"].T,
-        "token_embedding.weight": sd["text_model.embeddings.token_embedding.weight"],
-        "positional_embedding": sd["text_model.embeddings.position_embedding.weight"],
-        "ln_final.weight": sd["text_model.final_layer_norm.weight"], "ln_final.bias": sd["text_model.final_layer_norm.bias"],
-        "text_projection": sd["text_projection.weight"].T,
-        "logit_scale": sd["logit_scale"],
-    })
+    for p, h in _layer_prefixes(cfg):
+        for a, b in _BLOCK.items():
+            out[p + a] = sd[h + b]
+        out[p + "attn.in_proj_weight"] = torch.cat([sd[f"{h}self_attn.{c}_proj.weight"] for c in "qkv"])
+        out[p + "attn.in_proj_bias"] = torch.cat([sd[f"{h}self_attn.{c}_proj.bias"] for c in "qkv"])
+    out.update(_top_level(sd, to_hf=False))
     return {k: v.contiguous() for k, v in out.items()}
 
 
