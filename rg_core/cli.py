@@ -212,6 +212,10 @@ def cmd_eval(args, cfg) -> dict:
 
     if args.preset:
         cfg.models.preset = args.preset
+    if args.field_steps is not None:
+        cfg.field.steps = args.field_steps
+    elif args.field_seconds is not None:
+        cfg.field.steps = 0  # an explicit --field-seconds beats a config file's field.steps
     from .models import ModelMissingError, apply_reasoner
 
     try:
@@ -317,7 +321,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--queries", help="queries.json-format file [{object_id, explicit, implicit: [...]}] "
                                      "(default: the scene's queries.json; BOP: object names + the description set)")
     p.add_argument("--supervision", default="default", choices=("default", "oracle"))
-    p.add_argument("--field-seconds", type=float, help="feature-training budget (default: config field.seconds)")
+    budget = p.add_mutually_exclusive_group()
+    budget.add_argument("--field-seconds", type=float, help="feature-training budget (default: config field.seconds)")
+    budget.add_argument("--field-steps", type=_positive, metavar="N",
+                        help="train the field exactly N steps instead (default: config field.steps; 0 there = seconds)")
     p.add_argument("--implicit", type=int, default=1, help="implicit queries per object (default 1)")
     p.add_argument("--ablation", action="store_true", help="relevancy only / + reasoning / + grouping table")
     p.add_argument("--preset", help="models of the default supervision: offline, paper, paper_cpu (default: config)")

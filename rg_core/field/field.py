@@ -286,14 +286,18 @@ class FeatureField:
         return len(rows)
 
     def train(self, seconds: float | None = None, iters: int | None = None, progress: bool = False) -> dict:
-        """Train until `seconds` (default cfg.seconds when neither is given) or `iters` runs out,
-        whichever first. Returns steps, seconds and mean losses (or the reason nothing ran)."""
+        """Train until `seconds` or `iters` runs out, whichever first; when neither is given,
+        cfg.steps steps if > 0, else cfg.seconds. Returns steps, seconds and mean losses (or the
+        reason nothing ran)."""
         import sys
 
         from tqdm import tqdm
 
         if seconds is None and iters is None:
-            seconds = self.cfg.seconds
+            if self.cfg.steps > 0:
+                iters = self.cfg.steps
+            else:
+                seconds = self.cfg.seconds
         t0 = time.perf_counter()
         hist, bar = [], tqdm(total=iters, desc="field", unit="it", disable=not progress, file=sys.stderr)
         while (iters is None or len(hist) < iters) and (seconds is None or time.perf_counter() - t0 < seconds):

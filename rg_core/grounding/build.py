@@ -44,7 +44,8 @@ def supervise(mapper: Mapper, scene, kind: str, text_encoder, progress: bool = F
 def build_grounder(scene, cfg: RGConfig, supervision: str = "default", field_seconds: float | None = None,
                    mapper: Mapper | None = None, progress: bool = False, reasoner=None) -> tuple[Grounder, dict]:
     """Map the scene's training frames (unless `mapper` is given), supervise, train the field for
-    `field_seconds` (default cfg.field.seconds) and return a Grounder plus timings."""
+    cfg.field.steps steps when > 0, else `field_seconds` (default cfg.field.seconds), and return a
+    Grounder plus timings (report["field"]["budget"] says which)."""
     from ..perception.embed import MiniLMText
 
     report: dict = {}
@@ -62,8 +63,11 @@ def build_grounder(scene, cfg: RGConfig, supervision: str = "default", field_sec
         report["supervision"] = supervise(mapper, scene, supervision, text, progress, cfg)
     field = getattr(mapper, "field", None) or FeatureField(mapper, cfg.field)
     secs = cfg.field.seconds if field_seconds is None else field_seconds
-    if secs > 0:
-        report["field"] = field.train(seconds=secs, progress=progress)
+    if cfg.field.steps > 0:  # pinned by count: the same steps however busy the CPU is
+        steps = cfg.field.steps
+        report["field"] = {**field.train(iters=steps, progress=progress), "budget": {"steps": steps}}
+    elif secs > 0:
+        report["field"] = {**field.train(seconds=secs, progress=progress), "budget": {"seconds": secs}}
     log.info("grounding ready: %d Gaussians, %d keyframes, %d field steps", len(mapper.gaussians),
              len(mapper.keyframes), field.steps)
     names = [o.name for o in scene.objects]
