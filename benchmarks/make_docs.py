@@ -40,7 +40,7 @@ def header(key: str) -> str:
 def cell(v) -> str:
     """A short cell: numbers as recorded when short, else to 4 significant digits."""
     if isinstance(v, float) and len(repr(v)) > 7:
-        return f"{v:.4g}" if abs(v) < 1e5 else f"{v:.0f}"
+        return f"{v:.4g}" if abs(v) < 1000 else f"{v:.0f}"
     return str(v)
 
 
