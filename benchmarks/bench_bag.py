@@ -5,7 +5,7 @@ CameraInfo, TF map -> odom -> base_link + static base_link -> camera_link -> opt
 both with the same configuration and prints the test PSNR of each, the difference, the pose error
 of the TF lookups and the bag size. The target: |PSNR(bag) - PSNR(folder)| <= 0.2 dB.
 
-  python benchmarks/bench_bag.py [--scene ../shared/data/rgbd/box_toys_50] [--frames 0] [--width 320]
+  python benchmarks/bench_bag.py [--scene ../shared/data/rgbd/box_toys_50] [--frames 0] [--width 320] [--record]
 """
 from __future__ import annotations
 
@@ -28,6 +28,19 @@ from rg_core.io.rosbag_write import write_scene_bag
 from rg_core.eval.mapping import map_scene
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import add_output_flags, finish  # noqa: E402
+
+
+def to_rows(out: dict) -> tuple[list[dict], str]:
+    """Shared-schema rows: the folder and the bag mapped with the same configuration."""
+    rows = [{"source": k, "psnr_db": round(out[k]["psnr"], 2), "gaussians": out[k]["gaussians"],
+             "keyframes": out[k]["keyframes"], "time_s": round(out[k]["seconds"], 1)} for k in ("folder", "bag")]
+    rows[1]["psnr_diff_db"] = out["psnr_diff_db"]
+    return rows, (f"{Path(out['scene']).name}, {out['frames']} frames mapped at width {out['width']}, "
+                  f"{out['iters_per_keyframe']} it/kf + {out['final_iters']} final; bag {out['bag_mb']} MB "
+                  f"(JPEG {out['jpeg_quality']}), TF pose error max {out['tf_pose_max_abs_error']:.1e}; "
+                  "target |PSNR diff| <= 0.2 dB")
 
 
 def subset_folder(src: Path, n: int, dst: Path) -> Path:
@@ -53,6 +66,7 @@ def main() -> int:
     ap.add_argument("--final-iters", type=int, default=-1, help="final refinement iterations (-1 = config)")
     ap.add_argument("--jpeg-quality", type=int, default=95)
     ap.add_argument("--out", default="", help="also write the JSON here")
+    add_output_flags(ap, json_flag=False)
     args = ap.parse_args()
     cfg = load_config(None).map
     over = {k: v for k, v in (("width", args.width), ("iters_per_keyframe", args.iters)) if v > 0}
@@ -93,6 +107,7 @@ def main() -> int:
                           f"{runs[k]['seconds']:.0f} |" for k in runs), file=sys.stderr)
         if args.out:
             Path(args.out).write_text(json.dumps(out, indent=1) + "\n")
+        finish(args, out, "bench_bag", to_rows)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return 0

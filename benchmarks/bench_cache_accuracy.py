@@ -2,7 +2,7 @@
 what depends only on the map; the answers must stay the same within 1 mIoU point).
 
     python benchmarks/bench_cache_accuracy.py [--seed 23] [--views 24] [--objects 5] [--field-iters 300]
-                                              [--supervision oracle] [--out DIR]
+                                              [--supervision oracle] [--out DIR] [--record]
 
 One synthetic scene (a seed the team never tuned on by default), one map and one trained field
 (trained by step count, so the field is the same whatever the machine's load), then every query of
@@ -25,6 +25,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from rg_core.util import run_json_script  # noqa: E402
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from _common import add_output_flags, finish  # noqa: E402
 
 KEYS = ("miou_visible", "miou_amodal", "localization", "target_accuracy")
 
@@ -36,6 +38,24 @@ def _pick(summary: dict) -> dict:
     return out
 
 
+def to_rows(res: dict) -> tuple[list[dict], str]:
+    """Shared-schema rows: caches on and off, explicit and implicit mIoU, median query time."""
+    rows = []
+    for name in ("cache_on", "cache_off"):
+        r = res[name]
+        pct = lambda kind, k: round(r[kind][k], 2) if r[kind].get(k) is not None else "-"   # already 0-100
+        rows.append({"grounder": name.replace("_", " "), "explicit_visible_miou": pct("explicit", "miou_visible"),
+                     "explicit_amodal_miou": pct("explicit", "miou_amodal"),
+                     "localization_pct": pct("explicit", "localization"),
+                     "implicit_visible_miou": pct("implicit", "miou_visible"),
+                     "query_median_s": round(r["seconds_per_query_median"], 3)})
+    d = res["difference_on_minus_off"]["explicit"].get("miou_visible")
+    sc = res["scene"]
+    return rows, (f"rg synth {sc['views']} views, {sc['objects']} objects, seed {sc['seed']}; {res['supervision']} "
+                  f"supervision, {res['gaussians']} Gaussians, field {res['field_steps']} steps by count; explicit "
+                  f"visible difference on - off {d:.2f} points (target: within 1)")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seed", type=int, default=23)
@@ -44,6 +64,7 @@ def main(argv=None) -> int:
     ap.add_argument("--field-iters", type=int, default=300)
     ap.add_argument("--supervision", default="oracle", choices=("oracle", "default"))
     ap.add_argument("--out", default=str(ROOT / "bench_out" / "cache_accuracy"))
+    add_output_flags(ap, json_flag=False)
     a = ap.parse_args(argv)
     from rg_core.config import RGConfig, SynthConfig
     from rg_core.eval.grounding import evaluate_queries
@@ -78,7 +99,7 @@ def main(argv=None) -> int:
         for kind in ("explicit", "implicit")}
     (out / "cache_accuracy.json").write_text(json.dumps(res, indent=1))
     print(json.dumps(res, indent=1))
-    return 0
+    return finish(a, res, "bench_cache_accuracy", to_rows)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Feature field: oracle-supervised error against training time on a synthetic scene.
 
-    python benchmarks/bench_field.py [--scene DIR] [--budgets 5 10 20 40 80] [--out DIR] [--json]
+    python benchmarks/bench_field.py [--scene DIR] [--budgets 5 10 20 40 80] [--out DIR] [--json] [--record]
 
 Without --scene it generates a 40-view 320x240 scene with 7 objects (seed 0) with `rg synth`'s
 generator, maps it with the default MapConfig (`map_scene`), builds oracle supervision (ground-
@@ -27,14 +27,21 @@ from rg_core.io.captures import read_scene  # noqa: E402
 from rg_core.eval.mapping import map_scene  # noqa: E402
 from rg_core.synth.generator import default_objects_dir, generate_scene  # noqa: E402
 from rg_core.util import peak_rss_mb  # noqa: E402
+from _common import add_output_flags, finish, pyplot, save_figure  # noqa: E402
+
+
+def to_rows(report: dict) -> tuple[list[dict], str]:
+    """Shared-schema rows: one per training budget."""
+    rows = [{"budget_s": r["budget_s"], "steps": r["steps"], "argmax_in_mask_pct": round(100 * r["argmax_in_mask"], 1),
+             "instance_separation_pct": round(100 * r["instance_separation"], 1)} for r in report["budgets"]]
+    m = report["map"]
+    return rows, (f"40 views 320x240, 7 objects, oracle supervision ({report['names']}), {report['threads']} torch "
+                  f"thread(s); map {m['keyframes']} keyframes, {m['gaussians']} Gaussians; default budget "
+                  f"{report['default_seconds']:g} s; peak RSS {report['peak_rss_mb']:.0f} MB")
 
 
 def plot(rows: list[dict], default_budget: float, out_png: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     secs = [r["seconds"] for r in rows]
     fig, ax = plt.subplots(figsize=(6, 3.6))
     ax.plot(secs, [100 * r["argmax_in_mask"] for r in rows], "o-", label="relevancy argmax in mask (3x3 peak)")
@@ -50,10 +57,7 @@ def plot(rows: list[dict], default_budget: float, out_png: Path) -> None:
     ax.set_ylim(0, 102)
     ax.legend(fontsize=7, loc="lower right")
     ax.set_title("Feature field with oracle supervision: error against run time", fontsize=9)
-    fig.tight_layout()
-    out_png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_png, dpi=110)
-    plt.close(fig)
+    save_figure(fig, out_png)
 
 
 def main() -> int:
@@ -63,7 +67,7 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=1, help="torch intra-op threads (1 is fastest on 2 shared cores)")
     ap.add_argument("--random-names", action="store_true", help="random name vectors instead of MiniLM")
     ap.add_argument("--out", default="bench_out")
-    ap.add_argument("--json", action="store_true")
+    add_output_flags(ap)
     args = ap.parse_args()
     if len(args.budgets) < 4:
         ap.error("give at least four budgets")
@@ -121,9 +125,7 @@ def main() -> int:
                     + ("  <- default" if r["budget_s"] == default_cfg.seconds else "") for r in report["budgets"]),
           file=sys.stderr)
     print(f"plot: {png}", file=sys.stderr)
-    if args.json:
-        print(json.dumps(report))
-    return 0
+    return finish(args, report, "bench_field", to_rows, plots=[png])
 
 
 if __name__ == "__main__":

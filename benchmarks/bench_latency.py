@@ -3,7 +3,7 @@ the Python API use it), per stage, for maps of 2k / 20k / 100k Gaussians, explic
 queries; this code against a baseline measured in the same run (the machine may be shared).
 
     python benchmarks/bench_latency.py --map MAP --scene SCENE [--baseline-code DIR] [--sizes 2000 20000 100000]
-                                       [--cold-repeats 2] [--out DIR] [--json]
+                                       [--cold-repeats 2] [--out DIR] [--json] [--record]
 
 MAP: a map with a trained field (`rg demo` writes one: rg_demo/scene.rgmap; or rg map --supervise
 --train-field S); SCENE: its scene folder (queries.json: each object's explicit query and first
@@ -32,6 +32,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from _common import add_output_flags, finish  # noqa: E402
 
 
 def p95(xs):
@@ -166,6 +168,25 @@ def plot(res: dict, out_png: Path) -> None:
     plt.close(fig)
 
 
+def to_rows(res: dict) -> tuple[list[dict], str]:
+    """Shared-schema rows: per map size and code, warm median / p95 and cold wall (medians)."""
+    rows = []
+    for n in sorted(int(k) for k in res["warm"]):
+        for code in ("new", "baseline"):
+            s, cold = res["warm"][str(n)][code]["summary"], res["cold"][str(n)][code]
+            row = {"gaussians": n, "code": code}
+            for m in ("explicit", "implicit"):
+                row[f"warm_{m}_median_s"] = round(s[f"all_{m}"]["median"], 3)
+                row[f"warm_{m}_p95_s"] = round(s[f"all_{m}"]["p95"], 2)
+            for m in ("explicit", "implicit"):
+                row[f"cold_{m}_s"] = round(statistics.median(c["wall"] for c in cold[m]), 2)
+            row["right_targets"] = f"{s['right']}/{s['n']}"
+            rows.append(row)
+    return rows, (f"baseline: {res['baseline']}; warm: one Grounder kept, each query asked twice; cold: `rg ground` "
+                  f"as a new process; load average at start {res['load_avg_start'][0]:.1f}; targets median 0.3 s, "
+                  "p95 0.6 s warm, 3 s cold at 20k")
+
+
 def table(res: dict) -> str:
     lines = ["| Gaussians | code | warm median / p95 explicit (s) | warm median / p95 implicit (s) | first ask median (s) | repeat median (s) | right targets | cold wall explicit / implicit (s) | cold stages (import, load, ground) explicit |",
              "|---|---|---|---|---|---|---|---|---|"]
@@ -202,7 +223,7 @@ def main() -> int:
     ap.add_argument("--cold-repeats", type=int, default=2)
     ap.add_argument("--queries", type=int, default=0, help="use only the first N objects' queries (0: all)")
     ap.add_argument("--out", default="bench_out/latency")
-    ap.add_argument("--json", action="store_true")
+    add_output_flags(ap)
     a = ap.parse_args()
     if a.child:
         kind, payload = a.child[0], json.loads(a.child[1])
@@ -257,7 +278,8 @@ def main() -> int:
         print(json.dumps({k: v for k, v in res.items() if k not in ("warm", "cold")} | {"table": md}))
     else:
         print(md)
-    return 0
+    a.json = False   # its JSON (the summary, not the raw rows) is printed above
+    return finish(a, res, "bench_latency", to_rows, plots=[out / "latency.png"])
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Mapping: error against run time on a synthetic scene, second-pass growth, and a real capture.
 
-    python benchmarks/bench_mapping.py [--scene DIR] [--budgets 5 10 20 40] [--out DIR] [--json]
+    python benchmarks/bench_mapping.py [--scene DIR] [--budgets 5 10 15 30] [--out DIR] [--json] [--record]
 
 Without --scene it generates the `rg synth` default (100 views, 320x240, 7 objects, seed 0).
 Writes OUT/mapping_error_vs_time.png and prints one line per run (JSON with --json).
@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 import tempfile
 import time
@@ -21,14 +20,31 @@ from rg_core.io.captures import read_scene  # noqa: E402
 from rg_core.eval.mapping import map_scene  # noqa: E402
 from rg_core.map.run import stream_frames  # noqa: E402
 from rg_core.synth.generator import default_objects_dir, generate_scene  # noqa: E402
+from _common import add_output_flags, finish, pyplot, save_figure  # noqa: E402
+
+
+def to_rows(report: dict) -> tuple[list[dict], str]:
+    """Shared-schema rows: one per synthetic budget, then the real capture (if mapped)."""
+    def row(scene: str, rep: dict) -> dict:
+        q = rep["test"]
+        r = {"scene": scene, "iters_per_keyframe": rep.get("iters_per_keyframe", report["default_iters_per_keyframe"]),
+             "time_s": round(rep["seconds_total"], 1), "keyframes": rep["keyframes"], "gaussians": rep["gaussians"],
+             "psnr_db": round(q["psnr"], 2), "depth_error_median_mm": round(1000 * q["depth_abs_error_median_m"], 2)}
+        if "second_pass" in rep:
+            r["second_pass_growth_pct"] = round(100 * rep["second_pass"]["growth"], 2)
+        return r
+
+    rows = [row("synthetic 100 views", rep) for rep in report["synthetic"]]
+    if report["real"]:
+        rows.append(row(Path(report["real_scene"]).name, report["real"]))
+    s = report["synthetic"][0]
+    return rows, (f"320x240 mapping, {s['train_frames']} train / {s['test_frames']} test views (synthetic), "
+                  f"+{report['final_iters']} final iterations; default "
+                  f"{report['default_iters_per_keyframe']} it/kf; PSNR and depth error on the test views")
 
 
 def plot(rows: list[dict], default_budget: int, out_png: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     secs = [r["seconds_total"] for r in rows]
     fig, ax = plt.subplots(1, 2, figsize=(9, 3.4))
     ax[0].plot(secs, [r["test"]["psnr"] for r in rows], "o-", label="whole image")
@@ -44,10 +60,7 @@ def plot(rows: list[dict], default_budget: int, out_png: Path) -> None:
                        (s, y), textcoords="offset points", xytext=(4, 4), fontsize=7)
     ax[0].legend(fontsize=7)
     fig.suptitle("Incremental mapping: error against run time (iterations per keyframe)", fontsize=9)
-    fig.tight_layout()
-    out_png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_png, dpi=110)
-    plt.close(fig)
+    save_figure(fig, out_png)
 
 
 def main() -> int:
@@ -56,10 +69,11 @@ def main() -> int:
     ap.add_argument("--budgets", type=int, nargs="+", default=[5, 10, 15, 30])
     ap.add_argument("--real", default=str(Path(__file__).resolve().parents[2] / "shared/data/rgbd/box_toys_50"))
     ap.add_argument("--out", default="bench_out")
-    ap.add_argument("--json", action="store_true")
+    add_output_flags(ap)
     args = ap.parse_args()
     default = MapConfig()
-    report = {"default_iters_per_keyframe": default.iters_per_keyframe, "synthetic": [], "real": None}
+    report = {"default_iters_per_keyframe": default.iters_per_keyframe, "final_iters": default.final_iters,
+              "synthetic": [], "real": None}
     with tempfile.TemporaryDirectory() as tmp:
         scene = args.scene
         if scene is None:
@@ -84,7 +98,7 @@ def main() -> int:
                   file=sys.stderr)
     if Path(args.real).is_dir():
         _, rep = map_scene(args.real, default, progress=False)
-        report["real"] = rep
+        report["real"], report["real_scene"] = rep, args.real
         q = rep["test"]
         print(f"{Path(args.real).name}: {rep['seconds_total']:.1f} s, {rep['keyframes']} kf, {rep['gaussians']} G, "
               f"PSNR {q['psnr']:.2f} dB (valid depth {q['psnr_valid_depth']:.2f}), depth median "
@@ -93,9 +107,7 @@ def main() -> int:
     plot(report["synthetic"], default.iters_per_keyframe, png)
     report["plot"] = str(png)
     print(f"plot: {png}", file=sys.stderr)
-    if args.json:
-        print(json.dumps(report))
-    return 0
+    return finish(args, report, "bench_mapping", to_rows, plots=[png])
 
 
 if __name__ == "__main__":

@@ -4,7 +4,7 @@ multi-view aggregation through the map, against plain ConSE (no colour term)
 measured in the same run, and with the optional mirror averaging; the same on real YCB photos.
 
     python benchmarks/bench_perception.py [--views 20] [--seeds 1 2 3] [--json] [--no-mirror]
-        [--class-text gloss both]
+        [--class-text gloss both] [--record]
 """
 from __future__ import annotations
 
@@ -21,6 +21,22 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from rg_core.util import run_json_script  # noqa: E402
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from _common import add_output_flags, finish  # noqa: E402
+
+
+def to_rows(res: dict) -> tuple[list[dict], str]:
+    """Shared-schema rows: one per ConSE variant (name top-1 per view, after multi-view, on YCB)."""
+    rows = []
+    for k, v in res.items():
+        if k.startswith("conse") and isinstance(v, dict):
+            ycb = res.get(f"ycb{k[5:]}", {})
+            rows.append({"variant": k, "top1_per_view_pct": round(100 * v["top1_per_view"], 1),
+                         "top1_multiview_pct": round(100 * v["top1_multiview"], 1),
+                         "ycb_top1_of_21_pct": round(100 * ycb["top1_among_21"], 1) if "top1_among_21" in ycb else "-"})
+    m = res["masks"]
+    return rows, (f"{res['scenes']}; offline RGB-D masks recall@0.5 {100 * m['recall_at_0.5']:.1f}% over {m['pairs']} "
+                  f"object views, {m['masks_per_view']} masks / view, {m['seconds_per_view']} s / view")
 
 
 def scene(seed: int, views: int, out: Path):
@@ -143,7 +159,7 @@ def main(argv=None) -> int:
     ap.add_argument("--views", type=int, default=20)
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     ap.add_argument("--out", default=str(ROOT / "bench_out" / "perception"))
-    ap.add_argument("--json", action="store_true")
+    add_output_flags(ap)
     ap.add_argument("--no-mirror", action="store_true", help="leave out the mirror-averaging variant (half the time)")
     ap.add_argument("--class-text", nargs="*", default=["gloss", "both"], choices=["gloss", "both"],
                     help="ConSE variants whose ImageNet classes are embedded by WordNet knowledge text")
@@ -169,7 +185,8 @@ def main(argv=None) -> int:
            "masks": masks_section(scenes), **conse, "seconds_conse_section": round(time.perf_counter() - t, 1),
            **{f"ycb{k[5:]}": ycb_section(e) for k, e in variants.items()}}
     print(json.dumps(res, indent=None if a.json else 1))
-    return 0
+    a.json = False   # printed above
+    return finish(a, res, "bench_perception", to_rows)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """Rasterizer speed: reference (pure torch) vs fast CPU path, in one run, as medians and ratios.
 
     python benchmarks/bench_rasterize.py [--repeats 5] [--json] [--baseline-code DIR [--rounds 3]]
-                                         [--png bench_out/rasterize.png]
+                                         [--png bench_out/rasterize.png] [--record]
 
 Cases (a) 20k Gaussians 160x120 and (b) 100k Gaussians 320x240, 36 channels each, on a synthetic
 cloud seen by one camera, then a growth check: time against Gaussians x covered pixels.
@@ -30,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, os.environ.get("RG_BENCH_CODE") or str(ROOT))
 from rg_core.render import Camera, rasterize  # noqa: E402
 from rg_core.util import peak_rss_mb  # noqa: E402
+from _common import add_output_flags, finish, pyplot, save_figure  # noqa: E402
 
 CASES = {"a_20k_160x120": (20_000, 160, 120), "b_100k_320x240": (100_000, 320, 240)}
 
@@ -110,11 +111,26 @@ def against_baseline(base: Path, rounds: int, repeats: int) -> dict:
     return out
 
 
-def plot(report: dict, path: Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def to_rows(report: dict) -> tuple[list[dict], str]:
+    """Shared-schema rows: one per case (fast path, reference, speed-up; ratio to a baseline if run)."""
+    rows = []
+    for label, c in report["cases"].items():
+        n, w, h = CASES[label]
+        row = {"case": f"{n // 1000}k Gaussians, {w}x{h}", "fwd_ms": c["fast"]["forward_ms"],
+               "fwd_bwd_ms": c["fast"]["forward_backward_ms"], "reference_fwd_ms": c["reference"]["forward_ms"],
+               "reference_fwd_bwd_ms": c["reference"]["forward_backward_ms"],
+               "speedup": f"x{c['speedup_forward']} / x{c['speedup_forward_backward']}",
+               "peak_rss_mb": c["reference"]["peak_rss_mb"]}
+        if "baseline" in report:
+            b = report["baseline"][label]
+            row["ratio_to_baseline"] = f"{b['ratio_forward']} / {b['ratio_forward_backward']}"
+        rows.append(row)
+    return rows, (f"36 channels, {report['threads']} torch threads; speed-up = reference / fast (fwd / fwd+bwd); "
+                  f"fwd+bwd time ~ (Gaussians x covered pixels)^{report['growth']['exponent_vs_gaussians_x_pixels']}")
 
+
+def plot(report: dict, path: Path) -> None:
+    plt = pyplot()
     labels = list(report["cases"])
     fig, axes = plt.subplots(1, len(labels), figsize=(5 * len(labels), 3.6))
     for ax, label in zip(axes, labels):
@@ -134,21 +150,18 @@ def plot(report: dict, path: Path) -> None:
         ax.set_title(label)
         ax.legend(fontsize=8)
     fig.suptitle(f"fast CPU rasterizer, 36 channels, {report['threads']} threads")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--ref-repeats", type=int, default=1, help="repeats for the slow reference")
-    ap.add_argument("--json", action="store_true")
     ap.add_argument("--baseline-code", help="checkout of older code (kernels built in place) to compare with")
     ap.add_argument("--rounds", type=int, default=3, help="alternating baseline/new runs per case")
     ap.add_argument("--png", default="", help="bar chart of the timings")
     ap.add_argument("--worker", choices=list(CASES), help=argparse.SUPPRESS)
+    add_output_flags(ap)
     args = ap.parse_args()
     if args.worker:
         print(json.dumps(worker(args.worker, args.repeats)))
@@ -189,9 +202,7 @@ def main() -> int:
     if args.png:
         plot(report, Path(args.png))
         print(f"plot: {args.png}", file=sys.stderr)
-    if args.json:
-        print(json.dumps(report))
-    return 0
+    return finish(args, report, "bench_rasterize", to_rows, plots=[args.png] if args.png else [])
 
 
 if __name__ == "__main__":

@@ -3,7 +3,7 @@ nearest name, background-name rejection) against the new one (name + WordNet glo
 thresholds fit on the tune half), in the same run, both halves reported separately.
 
     python benchmarks/bench_reasoning.py [--out bench_out/reasoning] [--fit] [--llm [--llm-model GGUF]]
-                                         [--subsample K]
+                                         [--subsample K] [--record]
 
 Per half: top-1 / top-3 among random 7-name scene vocabularies (the target always in; fixed seed)
 and among the whole catalogue, real descriptions wrongly rejected, absent things rejected
@@ -34,6 +34,27 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from rg_core.util import run_json_script  # noqa: E402
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from _common import add_output_flags, finish  # noqa: E402
+
+
+def to_rows(res: dict) -> tuple[list[dict], str]:
+    """Shared-schema rows: per reasoner and half, 7-name and catalogue top-1, rejections, latency."""
+    rows = []
+    for name in ("old", "new", "new+llm", "new+llm*"):
+        for half in ("held_out", "tune"):
+            if half not in res.get(name, {}):
+                continue
+            s, c = res[name][half]["scene7"], res[name][half]["catalogue"]
+            rows.append({"reasoner": name, "half": half.replace("_", "-"), "scene7_top1_pct": round(100 * s["top1"], 1),
+                         "scene7_top3_pct": round(100 * s["top3"], 1), "catalogue_top1_pct": round(100 * c["top1"], 1),
+                         "false_rejections_pct": round(100 * s["false_rejections"], 1),
+                         "absent_rejected_pct": round(100 * s["absent_rejected"], 1),
+                         "query_median_ms": s["ms_per_query_median"]})
+    sp = res["split"]
+    return rows, (f"text model {res['text_model']}, {res['threads']} torch threads; {sp['catalogue']} objects split by "
+                  f"object ({sp['tune_queries']} tune / {sp['held_queries']} held-out queries); 7-name scenes: target "
+                  "always among 7 names")
 
 
 LLM_WEIGHTS = (0.0, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0)
@@ -135,6 +156,7 @@ def main(argv=None) -> int:
                          "a named encoder's fit goes to rg_core/perception/data/reasoner_fit_NAME.json and "
                          "domain_prior_NAME.json (a folder's to OUT/), never over MiniLM's")
     ap.add_argument("--llm-threads", type=int, default=0, help="llama.cpp threads (0: --threads)")
+    add_output_flags(ap, json_flag=False)
     a = ap.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -239,7 +261,7 @@ def main(argv=None) -> int:
         res[name]["explicit_ms_median"] = explicit_latency(r, sp.names)
     write_outputs(res, out)
     print(json.dumps(res, indent=1))
-    return 0
+    return finish(a, res, "bench_reasoning", to_rows, plots=[out / "reasoning.png"])
 
 
 def write_outputs(res: dict, out: Path) -> None:

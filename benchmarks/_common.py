@@ -1,0 +1,169 @@
+"""What every benchmark script shares: one small result schema, its writer and checker, machine info,
+the `--json` / `--record` ending, and saving a matplotlib figure.
+
+Why one place: docs/benchmarks.md is generated from benchmarks/results/<script>.json
+(benchmarks/make_docs.py), so every script must write the same shape:
+
+    {"script": "bench_x", "command": "python benchmarks/bench_x.py ...", "date": "YYYY-MM-DD",
+     "machine": {"cpu", "cores", "python", "torch"}, "rows": [{short named figures}],
+     "notes": "one line", optional "source" (a transcription's origin) and "plots" (PNG paths)}
+
+Row keys are snake_case and end in their unit (_s, _ms, _db, _mm, _pct, _mb, _gb) when they have one;
+values are numbers or short strings, so every table cell stays short.
+"""
+from __future__ import annotations
+
+import os
+import platform
+import shutil
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+KEYS = {"script", "command", "date", "machine", "rows", "notes"}
+OPTIONAL = {"source", "plots"}
+MACHINE_KEYS = {"cpu", "cores", "python", "torch"}
+MAX_CELL = 48     # characters of a string cell
+MAX_NOTES = 480   # characters of the one-line notes
+
+
+def machine() -> dict:
+    """CPU model, logical cores, Python and torch versions of this process."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        import torch
+
+        tv = torch.__version__
+    except ImportError:
+        tv = "none"
+    return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(), "torch": tv}
+
+
+def command_line(argv: list[str] | None = None) -> str:
+    """The command that produced this result, as a user types it (without --json / --record)."""
+    argv = sys.argv if argv is None else argv
+    args = [a for a in argv[1:] if a not in ("--json", "--record")]
+    return " ".join(["python", f"benchmarks/{Path(argv[0]).name}", *args])
+
+
+def check_result(rec: dict) -> list[str]:
+    """Problems of one result record against the schema (empty: it conforms)."""
+    bad = []
+    if not isinstance(rec, dict):
+        return ["not an object"]
+    if KEYS - set(rec):
+        bad.append(f"missing {sorted(KEYS - set(rec))}")
+    if set(rec) - KEYS - OPTIONAL:
+        bad.append(f"unknown keys {sorted(set(rec) - KEYS - OPTIONAL)}")
+    for k in ("script", "command", "notes", "date"):
+        if not isinstance(rec.get(k), str) or (k != "notes" and not rec.get(k)):
+            bad.append(f"{k} must be a non-empty string")
+    try:
+        time.strptime(str(rec.get("date")), "%Y-%m-%d")
+    except ValueError:
+        bad.append(f"date {rec.get('date')!r} is not YYYY-MM-DD")
+    if "\n" in str(rec.get("notes")) or len(str(rec.get("notes"))) > MAX_NOTES:
+        bad.append(f"notes must be one line of at most {MAX_NOTES} characters")
+    m = rec.get("machine")
+    if not isinstance(m, dict) or set(m) != MACHINE_KEYS:
+        bad.append(f"machine must have exactly {sorted(MACHINE_KEYS)}")
+    rows = rec.get("rows")
+    if not isinstance(rows, list) or not rows:
+        bad.append("rows must be a non-empty list")
+        rows = []
+    for i, r in enumerate(rows):
+        if not isinstance(r, dict) or not r:
+            bad.append(f"row {i} must be a non-empty object")
+            continue
+        for k, v in r.items():
+            if not (isinstance(k, str) and k.replace("_", "").isalnum() and k == k.lower()):
+                bad.append(f"row {i}: key {k!r} is not snake_case")
+            if isinstance(v, bool) or not isinstance(v, (int, float, str)) or v is None:
+                bad.append(f"row {i}: {k} must be a number or a string")
+            elif isinstance(v, str) and (len(v) > MAX_CELL or "\n" in v or "|" in v):
+                bad.append(f"row {i}: {k} is longer than {MAX_CELL} characters or has | / a newline")
+    if "source" in rec and not str(rec["source"]).startswith("transcribed from the notebook of "):
+        bad.append("source must read 'transcribed from the notebook of <date>'")
+    if not isinstance(rec.get("plots", []), list):
+        bad.append("plots must be a list of paths")
+    return bad
+
+
+def write_result(script: str, rows: list[dict], notes: str, *, command: str | None = None,
+                 plots: list | tuple = (), out_dir: Path = RESULTS) -> Path:
+    """Write out_dir/<script>.json in the shared schema, dated today, with this machine; PNG plots
+    that exist are copied next to it (as <script>-<name>.png) so the docs can point at them."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    kept = []
+    for p in map(Path, plots):
+        if p.is_file():
+            dst = out_dir / f"{script}-{p.name}"
+            shutil.copyfile(p, dst)
+            kept.append(str(dst.relative_to(ROOT)) if dst.is_relative_to(ROOT) else str(dst))
+    load = os.getloadavg()   # the CPU may be shared: say how busy it was
+    notes = f"{notes}; load average {load[0]:.1f} (1 min) / {load[1]:.1f} (5 min) at the end, {os.cpu_count()} cores"
+    rec = {"script": script, "command": command or command_line(), "date": time.strftime("%Y-%m-%d"),
+           "machine": machine(), "rows": rows, "notes": notes}
+    if kept:
+        rec["plots"] = kept
+    bad = check_result(rec)
+    if bad:
+        raise ValueError(f"{script}: result does not fit the schema: {bad}")
+    import json
+
+    path = out_dir / f"{script}.json"
+    path.write_text(json.dumps(rec, indent=1) + "\n", encoding="utf-8")
+    print(f"recorded {path}", file=sys.stderr)
+    return path
+
+
+def add_output_flags(ap, json_flag: bool = True) -> None:
+    """--json (print the script's raw report) and --record (write benchmarks/results/<script>.json)."""
+    if json_flag:
+        ap.add_argument("--json", action="store_true", help="print the raw report as one JSON line")
+    ap.add_argument("--record", action="store_true",
+                    help="write benchmarks/results/<script>.json (the source of docs/benchmarks.md)")
+
+
+def finish(args, report: dict, script: str, to_rows, plots: list | tuple = ()) -> int:
+    """The scripts' common ending: print the raw report with --json; with --record turn it into
+    (rows, notes) with to_rows(report) and write the shared result file."""
+    import json
+
+    if getattr(args, "json", False):
+        print(json.dumps(report, default=str))
+    if getattr(args, "record", False):
+        rows, notes = to_rows(report)
+        write_result(script, rows, notes, plots=plots)
+    return 0
+
+
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (no display needed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig, out_png: Path, dpi: int = 110) -> None:
+    """Lay out, save (creating the folder) and close a figure."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    out_png = Path(out_png)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_png, dpi=dpi)
+    plt.close(fig)
