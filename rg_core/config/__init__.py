@@ -186,7 +186,7 @@ class FieldConfig:
     """Training renders at most this wide (cheaper steps); masks are resampled to it."""
     seconds: float = 80.0
     """Default budget of `train()`: the first of 5-80 s to pass both oracle checks (bench_field.py)."""
-    steps: int = 0
+    steps: Annotated[int, Interval(ge=0)] = 0
     """> 0: train exactly this many steps instead of `seconds` (runs comparable by count, not CPU speed)."""
     seed: int = 0
     """Random seed of latents, mappers and ray sampling."""
