@@ -9,8 +9,8 @@ Per half: top-1 / top-3 among random 7-name scene vocabularies (the target alway
 and among the whole catalogue, real descriptions wrongly rejected, absent things rejected
 (absent queries get 7 random names), warm latency per implicit query, explicit latency, load time.
 --fit refits the text reasoner on the tune half and reports the fitted values (the defaults in
-rg_core/perception/reasoner.py FIT came from this); nothing is ever fit on the held-out half.
---llm adds the LLM-scored ensemble (rg_core/perception/llm_scorer.py, default model the packaged
+rg_core/perception/reasoning/__init__.py FIT came from this); nothing is ever fit on the held-out half.
+--llm adds the LLM-scored ensemble (rg_core/perception/reasoning/llm_scorer.py, default model the packaged
 SmolLM2-135M; --llm-model any GGUF); with --fit its llm_weight and the reduction of a name's token
 log-probs (sum or mean) are grid-fit on the TUNE half (sum of 7-name and whole-catalogue top-1 over
 the real descriptions), and the LLM ensemble is evaluated on the held-out half only.
@@ -65,7 +65,7 @@ def fit_llm(reasoner, scorer, queries, names: list[str], scenes: list[list[str]]
     whole-catalogue top-1 (real descriptions of the given half; rejection does not depend on the
     LLM term: it is decided on the text score); ties: the smaller weight, then "sum"."""
     from rg_core.eval.reasoning import features
-    from rg_core.perception.reason_scoring import combine
+    from rg_core.perception.reasoning.scoring import combine
 
     feat = features(reasoner, queries, names)
     text = combine(feat["sn"], feat["sg"], reasoner.name_weight)       # [M, N]
@@ -163,7 +163,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(a.threads)
     from rg_core.eval.reasoning import features, fit_domain_prior, fit_text_reasoner, load_descriptions, scene_vocabularies, split
     from rg_core.perception.embed import MiniLMText
-    from rg_core.perception.reasoner import TextReasoner
+    from rg_core.perception.reasoning import TextReasoner
     from rg_core.perception.text_cache import CachedText
 
     sp = split(load_descriptions())
@@ -178,7 +178,7 @@ def main(argv=None) -> int:
     other = a.text_model not in ("", "minilm")
     fit_file, prior_file = (fit_paths(a.text_model, DATA) if is_named(a.text_model) else fit_paths("folder", out))
     if other:   # the package's prior belongs to MiniLM: this encoder's own, or none before a fit
-        import rg_core.perception.reasoner as reasoner_module
+        import rg_core.perception.reasoning as reasoner_module
 
         reasoner_module.DOMAIN_PRIOR_PATH = prior_file
     # Separate caches: neither reasoner sees the other's query embeddings (honest warm latency).
@@ -196,7 +196,7 @@ def main(argv=None) -> int:
                      "tune_queries": len(sp.tune), "held_queries": len(sp.held), "catalogue": len(sp.names)},
            "load_s": {"minilm": round(load_model, 2), "old": round(load_old, 2), "new": round(load_new, 2)}}
     if a.fit:
-        from rg_core.perception.reasoner import DOMAIN_PRIOR_PATH
+        from rg_core.perception.reasoning import DOMAIN_PRIOR_PATH
 
         prior, oof = fit_domain_prior(new.text, tune_all)
         DOMAIN_PRIOR_PATH.write_text(json.dumps(prior) + "\n", encoding="utf-8")
@@ -216,7 +216,7 @@ def main(argv=None) -> int:
     reasoners = {"old": old, "new": new}
     if a.llm:
         try:
-            from rg_core.perception.llm_scorer import LLMChoiceScorer
+            from rg_core.perception.reasoning.llm_scorer import LLMChoiceScorer
             t = time.perf_counter()
             scorer = LLMChoiceScorer(model_path=a.llm_model or None, n_threads=a.llm_threads or a.threads, memo_size=8192,
                                      knowledge_max_names=a.llm_knowledge_max)

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from .config import ConfigError, load_config
-from .perception.masks import BackendError
+from .perception.base import BackendError
 from .util import stdout_to_stderr
 
 

@@ -4,8 +4,8 @@ import importlib.util
 
 import pytest
 
-from rg_core.perception.masks import BackendError
-from rg_core.perception.reasoner import make_reasoner
+from rg_core.perception.base import BackendError
+from rg_core.perception.reasoning import make_reasoner
 
 
 def test_missing_llama_cpp_names_the_install_command(monkeypatch):

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from rg_core.perception.embed import OnnxClipEmbedder, make_embedder, mask_crop
-from rg_core.perception.masks import BackendError
+from rg_core.perception.base import BackendError
 
 
 def test_mask_crop_masks_background_and_pads_square():

@@ -12,7 +12,7 @@ from rg_core.grounding.pipeline import Grounder
 
 @pytest.fixture(scope="module")
 def grounder(oracle_field, synth_scene):
-    from rg_core.perception.reasoner import TextReasoner
+    from rg_core.perception.reasoning import TextReasoner
 
     field, embed = oracle_field
     return Grounder(field.mapper, field, RGConfig(), reasoner=TextReasoner(), text_encoder=embed,
@@ -91,7 +91,7 @@ class _ImageReasoner:
     """The text reasoner behind an image reasoner's interface, recording the picture each call gets."""
 
     def __init__(self, accepts_images=True):
-        from rg_core.perception.reasoner import TextReasoner
+        from rg_core.perception.reasoning import TextReasoner
 
         self.inner, self.accepts_images, self.images = TextReasoner(), accepts_images, []
 

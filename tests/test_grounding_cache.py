@@ -32,7 +32,7 @@ def own_map(oracle_field, tmp_path):
 
 
 def grounders(m, embed, names):
-    from rg_core.perception.reasoner import TextReasoner
+    from rg_core.perception.reasoning import TextReasoner
 
     r = TextReasoner()
     return [Grounder(m, m.field, RGConfig(), reasoner=r, text_encoder=embed, scene_names=names, cache=c)

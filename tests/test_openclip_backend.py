@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from rg_core.perception.embed import make_embedder
-from rg_core.perception.masks import BackendError
+from rg_core.perception.base import BackendError
 
 
 def _open_clip():

@@ -14,10 +14,10 @@ import urllib.request
 import numpy as np
 import pytest
 
-from rg_core.perception.explicit import explicit_match, is_explicit
-from rg_core.perception.reasoner import Reasoning, TextReasoner, make_reasoner
-from rg_core.perception.gguf import packaged_gguf
-from rg_core.perception.reasoner_llm import AnswerError, OpenAIChatReasoner, build_messages, parse_answer
+from rg_core.perception.reasoning.explicit import explicit_match, is_explicit
+from rg_core.perception.reasoning import Reasoning, TextReasoner, make_reasoner
+from rg_core.perception.reasoning.gguf import packaged_gguf
+from rg_core.perception.reasoning.llm import AnswerError, OpenAIChatReasoner, build_messages, parse_answer
 from rg_core.synth.catalogue import PYBULLET_OBJECTS, SHARED_OBJECTS
 
 ENTRIES = SHARED_OBJECTS + PYBULLET_OBJECTS

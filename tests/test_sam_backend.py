@@ -8,8 +8,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from rg_core.perception.masks import BackendError, Mask, make_mask_generator
-from rg_core.perception.masks_sam import (
+from rg_core.perception.base import BackendError, Mask
+from rg_core.perception.masks import make_mask_generator
+from rg_core.perception.masks.sam import (
     SamOnnxGenerator,
     box_nms,
     mask_boxes,

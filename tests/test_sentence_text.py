@@ -8,8 +8,8 @@ import torch
 
 from rg_core.config import ReasonConfig
 from rg_core.perception import sentence_text as st
-from rg_core.perception.masks import BackendError
-from rg_core.perception.reasoner import TextReasoner, reasoner_from_config
+from rg_core.perception.base import BackendError
+from rg_core.perception.reasoning import TextReasoner, reasoner_from_config
 
 NAMES = ["coffee mug", "banana", "hammer", "remote control", "rubber duck", "stapler", "lemon"]
 

@@ -248,7 +248,7 @@ class GroundConfig:
 @section
 class ReasonConfig:
     """Reasoning backend: implicit query (+ reference view) -> target object name
-    (rg_core/perception/reasoner.py; thresholds measured on the synthetic catalogue)."""
+    (rg_core/perception/reasoning/__init__.py; thresholds measured on the synthetic catalogue)."""
 
     backend: str = "text"
     """"text" (offline MiniLM nearest name), "llama_cpp" (local GGUF) or "openai" (chat endpoint)."""
@@ -280,7 +280,7 @@ class ReasonConfig:
     cache_dir: str = CACHE_DIR
     """Disk cache of the fixed embeddings (background concepts, ConSE classes); empty = none."""
     llm_scorer: bool = False
-    """Add a local LLM's per-name log-likelihoods to the text score (perception/llm_scorer.py); off:
+    """Add a local LLM's per-name log-likelihoods to the text score (perception/reasoning/llm_scorer.py); off:
     no packaged model improved held-out accuracy (docs/benchmarks.md)."""
     llm_weight: float = 0.0
     """Weight of the LLM's log-softmax over the names in the ensemble score (0 = text only)."""

@@ -79,7 +79,7 @@ def features(reasoner, queries: list[Query], names: list[str]) -> dict:
     [M, B], and name-to-background similarities [N, B] (the synonym exclusion)."""
     import torch
 
-    from ..perception.reason_scoring import NAME_TEMPLATE
+    from ..perception.reasoning.scoring import NAME_TEMPLATE
 
     T = reasoner.text
     Q = T([q.text for q in queries])
@@ -96,7 +96,7 @@ def components(feat: dict, vocabs: list[list[int]], name_weight: float, backgrou
     background score among concepts unlike every vocabulary name (-2 when none) [M] each."""
     import torch
 
-    from ..perception.reason_scoring import combine
+    from ..perception.reasoning.scoring import combine
 
     s = combine(feat["sn"], feat["sg"], name_weight)                          # [M, N]
     b = combine(feat["bn"], feat["bg"], name_weight)                          # [M, B]

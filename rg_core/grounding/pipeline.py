@@ -84,7 +84,7 @@ class Grounder:
     @property
     def reasoner(self):
         if self._reasoner is None:
-            from ..perception.reasoner import reasoner_from_config
+            from ..perception.reasoning import reasoner_from_config
 
             self._reasoner = reasoner_from_config(self.cfg.reason)
         return self._reasoner

@@ -96,7 +96,7 @@ def verify_clip(name: str, root) -> dict:
 
 
 def verify_sam(name: str, root) -> dict:
-    from ..perception.masks_sam import SamOnnxGenerator, point_grid, preprocess
+    from ..perception.masks.sam import SamOnnxGenerator, point_grid, preprocess
 
     info = _need_export(name, root)
     d = onnx_dir(name, root)
@@ -118,7 +118,7 @@ def verify_sam(name: str, root) -> dict:
     except ModelMissingError:
         rep["parity"] = "skipped: PyTorch weights not present"
         return rep
-    from ..perception.masks_sam import resized_shape
+    from ..perception.masks.sam import resized_shape
 
     rh, rw = resized_shape(H, W)
     coords = (pts * np.array([rw / W, rh / H])).astype(np.float32)

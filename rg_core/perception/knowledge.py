@@ -13,7 +13,7 @@ import json
 from functools import lru_cache
 from pathlib import Path
 
-from .masks import BackendError
+from .base import BackendError
 
 DEFAULT_PATH = Path(__file__).parent / "data" / "name_knowledge.json"
 _ENTRY_KEYS = {"synset", "lemma", "gloss", "synonyms", "hypernyms"}

@@ -26,7 +26,7 @@ from pathlib import Path
 import torch
 
 from ..config import CACHE_DIR
-from .masks import BackendError
+from .base import BackendError
 
 log = logging.getLogger(__name__)
 

@@ -58,7 +58,7 @@ class Context:
 
     def reasoner(self):
         if "reasoner" not in self.cache:
-            from ..perception.reasoner import TextReasoner
+            from ..perception.reasoning import TextReasoner
 
             self.cache["reasoner"] = TextReasoner()
         return self.cache["reasoner"]

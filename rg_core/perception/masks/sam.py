@@ -30,7 +30,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .masks import BackendError, Mask, MaskGenerator
+from ..base import BackendError, Mask
+from . import MaskGenerator
 
 SAM_SIZE = 1024  # SAM's input frame: longest side
 SAM_MEAN = np.array([123.675, 116.28, 103.53], np.float32)

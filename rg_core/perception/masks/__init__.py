@@ -5,21 +5,11 @@ or package it needs.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
-
-@dataclass
-class Mask:
-    mask: np.ndarray   # [H, W] bool
-    score: float       # confidence in [0, 1]
-    level: int         # 0 part, 1 object, 2 group / support surface (SAM's three levels)
-
-
-class BackendError(RuntimeError):
-    """A model backend cannot load: the message names the missing file or package."""
+from ..base import BackendError, Mask  # noqa: F401 - the mask interface's types
 
 
 class MaskGenerator:
@@ -43,9 +33,9 @@ class MaskGenerator:
 
 
 _REGISTRY: dict[str, Callable[..., MaskGenerator] | str] = {
-    "rgbd": "rg_core.perception.masks_rgbd:RGBDMaskGenerator",
-    "sam_onnx": "rg_core.perception.masks_sam:SamOnnxGenerator",
-    "sam": "rg_core.perception.masks_sam:SegmentAnythingGenerator",
+    "rgbd": "rg_core.perception.masks.rgbd:RGBDMaskGenerator",
+    "sam_onnx": "rg_core.perception.masks.sam:SamOnnxGenerator",
+    "sam": "rg_core.perception.masks.sam:SegmentAnythingGenerator",
 }
 
 
@@ -55,6 +45,6 @@ def register(name: str, factory: Callable[..., MaskGenerator] | str) -> None:
 
 
 def make_mask_generator(name: str, **kwargs) -> MaskGenerator:
-    from ..util import make_registered
+    from ...util import make_registered
 
     return make_registered("mask generator", _REGISTRY, name, **kwargs)

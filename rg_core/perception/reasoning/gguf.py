@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib.util
 from pathlib import Path
 
-from .masks import BackendError
+from ..base import BackendError
 
 SMOLLM2_FILE = "SmolLM2-135M-Instruct.Q4_1.gguf"
 
@@ -13,7 +13,7 @@ SMOLLM2_FILE = "SmolLM2-135M-Instruct.Q4_1.gguf"
 def llm_install_command() -> str:
     """The command that installs the LLM backends (scripts/install_llm.sh where the checkout has
     it, else the full install that scripts/test.sh runs)."""
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[3]
     if (root / "scripts" / "install_llm.sh").is_file():
         return "`bash scripts/install_llm.sh`"
     return "`RG_PROFILE=full bash scripts/bootstrap.sh` (what `bash scripts/test.sh` runs first)"

@@ -32,8 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import MAX_QUERY_CHARS
-from .masks import BackendError
+from ...config import MAX_QUERY_CHARS
+from ..base import BackendError
 
 log = logging.getLogger(__name__)
 

@@ -20,10 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import MAX_QUERY_CHARS
+from ...config import MAX_QUERY_CHARS
 from .explicit import explicit_match, normalise
 from .gguf import llm_install_command, packaged_gguf
-from .reasoner import NAME_TEMPLATE, BackendError, Reasoner, Reasoning, TextReasoner, validate
+from ..base import BackendError
+from . import NAME_TEMPLATE, Reasoner, Reasoning, TextReasoner, validate
 
 log = logging.getLogger(__name__)
 SYSTEM_PROMPT = (

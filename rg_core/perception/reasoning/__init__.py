@@ -21,11 +21,11 @@ from typing import Callable
 import numpy as np
 import torch
 
-from ..config import CACHE_DIR, MAX_QUERY_CHARS
+from ...config import CACHE_DIR, MAX_QUERY_CHARS
 from .explicit import EXPLICIT_SIMILARITY, explicit_match
-from .masks import BackendError
-from .query import check_query, parse_mode
-from .text_cache import CachedText, embed_cached, inner_encoder
+from ..base import BackendError
+from ..query import check_query, parse_mode
+from ..text_cache import CachedText, embed_cached, inner_encoder
 
 log = logging.getLogger(__name__)
 # Fit on the tune half of the description set (benchmarks/bench_reasoning.py --fit; provenance in
@@ -66,7 +66,7 @@ def validate(query: str, vocabulary: list[str], max_query_chars: int = MAX_QUERY
     return clean
 
 
-DOMAIN_PRIOR_PATH = Path(__file__).parent / "data" / "domain_prior.json"
+DOMAIN_PRIOR_PATH = Path(__file__).parents[1] / "data" / "domain_prior.json"
 
 
 @dataclass
@@ -111,7 +111,7 @@ def shared_text_model():
     """One MiniLM per process (loading takes seconds; every reasoner can use the same one)."""
     global _SHARED_TEXT
     if _SHARED_TEXT is None:
-        from .embed import MiniLMText
+        from ..embed import MiniLMText
 
         _SHARED_TEXT = CachedText(MiniLMText())
     return _SHARED_TEXT
@@ -164,7 +164,7 @@ class TextReasoner(Reasoner):
         self.llm_scorer, self.llm_weight = llm_scorer, float(llm_weight)
         self.knowledge, self.knowledge_error = None, None
         if use_knowledge:
-            from .knowledge import KnowledgeError, load_knowledge
+            from ..knowledge import KnowledgeError, load_knowledge
             try:
                 self.knowledge = load_knowledge(knowledge_path or None)
             except KnowledgeError as exc:  # the reasoner still answers, by names alone
@@ -218,7 +218,7 @@ class TextReasoner(Reasoner):
         """Evidence per name: name similarity [N], gloss similarity [N] (or None), LLM
         log-likelihoods [N] (or None, with the reason in 'llm_error'), combined text score and
         final score [N]."""
-        from .reason_scoring import combine
+        from .scoring import combine
         q = self.text([query.strip()])
         sn = (q @ self.text([NAME_TEMPLATE.format(v) for v in vocab]).T)[0]
         sg = (q @ self.text(self.gloss_texts(vocab)).T)[0] if self.knowledge else None
@@ -242,7 +242,7 @@ class TextReasoner(Reasoner):
         """The background concept the query resembles more than any vocabulary name, if any."""
         if not self._bg_on:
             return None
-        from .reason_scoring import background_keep, combine
+        from .scoring import background_keep, combine
         names, ne, ge = self.background()
         keep = background_keep(self.text([NAME_TEMPLATE.format(v) for v in vocab]), ne, self.background_exclude)
         if not keep.any():
@@ -342,8 +342,8 @@ class TextReasoner(Reasoner):
 
 _REGISTRY: dict[str, Callable[..., Reasoner] | str] = {
     "text": TextReasoner,
-    "openai": "rg_core.perception.reasoner_llm:OpenAIChatReasoner",
-    "llama_cpp": "rg_core.perception.reasoner_llm:LlamaCppReasoner",
+    "openai": "rg_core.perception.reasoning.llm:OpenAIChatReasoner",
+    "llama_cpp": "rg_core.perception.reasoning.llm:LlamaCppReasoner",
 }
 
 
@@ -353,7 +353,7 @@ def register(name: str, factory: Callable[..., Reasoner] | str) -> None:
 
 
 def make_reasoner(name: str = "text", **kwargs) -> Reasoner:
-    from ..util import make_registered
+    from ...util import make_registered
 
     return make_registered("reasoner", _REGISTRY, name, **kwargs)
 
@@ -367,7 +367,7 @@ def _text_kwargs(cfg) -> dict:
                 use_knowledge=cfg.use_knowledge, knowledge_path=cfg.knowledge_path, domain_prior=cfg.domain_prior,
                 prior_trust=cfg.prior_trust, cache_dir=cfg.cache_dir)
     if cfg.text_model not in ("", "minilm"):
-        from .sentence_text import encoder_fit, make_text_model
+        from ..sentence_text import encoder_fit, make_text_model
 
         text["text_model"] = CachedText(make_text_model(cfg.text_model, cfg.cache_dir))
         fit, prior = encoder_fit(cfg.text_model)

@@ -14,8 +14,8 @@ import cv2
 import numpy as np
 import torch
 
-from .embed import CLIP_MEAN, CLIP_STD, Embedder
-from .masks import BackendError
+from . import CLIP_MEAN, CLIP_STD, Embedder
+from ..base import BackendError
 
 
 class OpenClipEmbedder(Embedder):

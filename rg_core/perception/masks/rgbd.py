@@ -21,7 +21,8 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from .masks import Mask, MaskGenerator
+from ..base import Mask
+from . import MaskGenerator
 
 
 @dataclass
