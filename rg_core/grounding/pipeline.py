@@ -106,7 +106,7 @@ class Grounder:
         configured names, their reasoner prompt form, the reasoner's background names, the canonical
         phrases) with MiniLM and keep them in the map's supervision: save_map then stores them, and
         a new process answers a query naming one of them without loading the text model. -> count."""
-        from ..perception import reasoner as rmod
+        from ..perception import reasoning as rmod
         from ..perception.embed import MiniLMText
         from .vocabulary import HOUSEHOLD
 
