@@ -35,7 +35,7 @@ setup(
     python_requires=">=3.10",
     packages=find_packages(include=["rg_core", "rg_core.*", "rg_ros", "rg_ros.*"]),
     # Data files inside rg_core (the reasoning benchmark's description set, issue 15).
-    package_data={"rg_core": ["perception/data/*.json"]},
+    package_data={"rg_core": ["perception/data/*.json", "perception/data/embeddings/*.npy"]},
     install_requires=_requirements("requirements.txt"),
     extras_require={"test": _requirements("requirements-test.txt")},
     # The layout `ros2 run` / `ros2 launch` expect under an AMENT_PREFIX_PATH prefix: the ament index

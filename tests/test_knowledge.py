@@ -207,3 +207,24 @@ def test_benchmark_decision_is_the_reasoners(text):
     for q, v, p in zip(queries, vocabs, picks):
         got = r.reason(q.text, v, mode="implicit").target
         assert got == ("" if p == -1 else sp.names[p]), (q.text, v, got)
+
+
+def test_shipped_embeddings_are_what_the_code_would_compute(tmp_path):
+    """The packaged background and ConSE class embeddings (scripts/ship_embeddings.py) match the
+    current texts and encoder: nothing is embedded or written to an empty cache folder, and the
+    rows equal a fresh embedding of their texts."""
+    from rg_core.perception.embed import make_embedder
+    from rg_core.perception.reasoning import NAME_TEMPLATE
+
+    r = TextReasoner(cache_dir=str(tmp_path))
+    names, ne, ge = r.background()
+    conse = make_embedder("conse", cache_dir=str(tmp_path))
+    assert list(tmp_path.iterdir()) == [], "a shipped embedding is stale: run python scripts/ship_embeddings.py"
+    model = shared_text_model()
+    idx = [0, len(names) // 2, len(names) - 1]
+    fresh = model([NAME_TEMPLATE.format(names[i]) for i in idx])
+    assert torch.allclose(ne[idx], fresh, atol=1e-5)
+    glosses = r.knowledge.imagenet_texts()   # the ImageNet classes' glosses, then the added COCO names'
+    glosses += [r.knowledge.text(n) for n in names[len(glosses):]]
+    assert torch.allclose(ge[idx], model([glosses[i] for i in idx]), atol=1e-5)
+    assert torch.allclose(conse.class_emb[:3], model(conse.class_names[:3]), atol=1e-5)

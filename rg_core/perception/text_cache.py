@@ -42,25 +42,46 @@ def model_identity(text_model) -> str:
     return f"{type(m).__name__}:{Path(str(folder)).name}:{getattr(m, 'dim', '')}"
 
 
-def embed_cached(text_model, texts: list[str], cache_dir: str | Path | None, tag: str) -> torch.Tensor:
-    """Embeddings of a fixed text list (the background, ConSE's 1000 classes), kept on disk under
-    cache_dir keyed by a hash of the texts: they depend only on the texts and the model, and
-    embedding 2000 texts on 2 cores takes 10-20 s. A missing, unreadable or stale cache is rebuilt."""
-    if not cache_dir:
-        return text_model(texts)
+# Embeddings of the fixed lists with the packaged encoder, made at build time by
+# scripts/ship_embeddings.py, so that a fresh machine's first query does not embed them.
+SHIPPED_DIR = Path(__file__).parent / "data" / "embeddings"
+
+
+def _key(text_model, texts: list[str], tag: str) -> str:
     ident = model_identity(text_model)
-    key = hashlib.sha1(("\n".join(texts) + f"|{tag}|{ident}").encode()).hexdigest()[:16]
-    p = Path(cache_dir).expanduser() / f"{tag}_{key}.npy"
-    if p.is_file():
-        try:
-            a = np.load(p, allow_pickle=False)
-            dim = getattr(inner_encoder(text_model), "dim", None)
-            if a.shape[0] == len(texts) and a.dtype == np.float32 and (dim is None or a.shape[-1] == dim):
-                return torch.from_numpy(a)
-            log.warning("embedding cache %s has shape %s for %d texts: rebuilding", p, a.shape, len(texts))
-        except (OSError, ValueError) as exc:
-            log.warning("embedding cache %s unreadable (%s): rebuilding", p, exc)
+    return f"{tag}_" + hashlib.sha1(("\n".join(texts) + f"|{tag}|{ident}").encode()).hexdigest()[:16]
+
+
+def _load(p: Path, n: int, dim: int | None) -> torch.Tensor | None:
+    """A stored [n, dim] float32 array, or None (missing, unreadable or of another shape)."""
+    if not p.is_file():
+        return None
+    try:
+        a = np.load(p, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        log.warning("embedding cache %s unreadable (%s): rebuilding", p, exc)
+        return None
+    if a.shape[0] == n and a.dtype == np.float32 and (dim is None or a.shape[-1] == dim):
+        return torch.from_numpy(a)
+    log.warning("embedding cache %s has shape %s for %d texts: rebuilding", p, a.shape, n)
+    return None
+
+
+def embed_cached(text_model, texts: list[str], cache_dir: str | Path | None, tag: str) -> torch.Tensor:
+    """Embeddings of a fixed text list (the background, ConSE's 1000 classes): from the package's
+    shipped files when they match the texts and the encoder, else from cache_dir, else computed and
+    kept there (keyed by a hash of the texts and the encoder's identity: embedding 2000 texts on 2
+    cores takes 10-20 s). None cache_dir: nothing is written."""
+    key, dim = _key(text_model, texts, tag), getattr(inner_encoder(text_model), "dim", None)
+    for folder in (SHIPPED_DIR, cache_dir):
+        if folder:
+            e = _load(Path(folder).expanduser() / f"{key}.npy", len(texts), dim)
+            if e is not None:
+                return e
     e = text_model(texts).float()
+    if not cache_dir:
+        return e
+    p = Path(cache_dir).expanduser() / f"{key}.npy"
     try:
         p.parent.mkdir(parents=True, exist_ok=True)
         tmp = p.with_suffix(".tmp.npy")
