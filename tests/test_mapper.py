@@ -197,3 +197,15 @@ def test_densify_seeds_only_where_the_colour_is_wrong(synth_scene):
     assert float(((z[ok] - d[ok]).abs() < 0.02).float().mean()) > 0.9
     assert all(torch.isfinite(x).all() for x in mapper.gaussians.tensors().values())
     assert mapper.optim.m["means"].shape[0] == len(mapper.gaussians)
+
+
+@pytest.mark.parametrize("tol, expect", [(0.0, "ceiling"), (0.99, "two windows")])
+def test_keyframe_iterations_stop_on_convergence(synth_scene, tol, expect):
+    """converge_tol 0: every keyframe runs iters_per_keyframe; a tolerance no loss drop can meet
+    stops each keyframe after two windows (the floor)."""
+    cfg = MapConfig(**{**SMALL, "iters_per_keyframe": 20, "converge_tol": tol, "converge_window": 3})
+    mapper = Mapper(cfg)
+    for f in synth_scene.train[:4]:
+        mapper.add_frame(*frame_args(f))
+    per_kf = mapper.stats()["keyframe_iters"] / len(mapper.keyframes)
+    assert per_kf == (20 if expect == "ceiling" else 6), mapper.stats()

@@ -85,6 +85,11 @@ class MapConfig:
     """Working image width: frames are resized to it (aspect kept) for mapping."""
     iters_per_keyframe: int = 15
     """Optimisation iterations after each keyframe (the run-time budget; see bench_mapping.py)."""
+    converge_tol: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.0
+    """> 0: a keyframe's iterations stop once the loss's mean over the last converge_window iterations
+    fell by less than this fraction of the window before's (iters_per_keyframe is then the ceiling)."""
+    converge_window: Annotated[int, Interval(ge=1)] = 4
+    """Iterations per window of that test; at least two windows run."""
     final_iters: int = 250
     """Iterations over all keyframes after the last frame (`rg map`; a node refines when idle)."""
     window: int = 8

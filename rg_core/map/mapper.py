@@ -63,7 +63,7 @@ class Mapper:
             "opacity_logits": lr.lr_opacity, "colors": lr.lr_colors, "background": lr.lr_colors})
         self.frames_seen = 0
         self.last_stamp: float | None = None
-        self.totals = {"added": 0, "dropped": 0, "pruned": 0, "out_of_order": 0}
+        self.totals = {"added": 0, "dropped": 0, "pruned": 0, "out_of_order": 0, "keyframe_iters": 0}
         self.seconds = {"prepare": 0.0, "check": 0.0, "seed": 0.0, "optimise": 0.0, "prune": 0.0, "refine": 0.0}
         self._rng = torch.Generator().manual_seed(self.cfg.seed)
         self.supervision = None  # perception.supervision.SupervisionSet, once computed
@@ -136,7 +136,7 @@ class Mapper:
         self.keyframes.append(kf)
         res.added, res.dropped = self._seed(fr, unexplained)
         t3 = time.perf_counter()
-        self._optimise(self.cfg.iters_per_keyframe)
+        self.totals["keyframe_iters"] += self._optimise(self.cfg.iters_per_keyframe, converge=True)
         if self.cfg.seed_colour_error > 0:
             a, d = self._densify(fr, kf)
             res.added, res.dropped = res.added + a, res.dropped + d
@@ -239,8 +239,11 @@ class Mapper:
             return self.keyframes[int(torch.randint(lo, n, (1,), generator=self._rng))]
         return self.keyframes[int(torch.randint(0, n, (1,), generator=self._rng))]
 
-    def _optimise(self, iters: int, uniform: bool = False) -> None:
+    def _optimise(self, iters: int, uniform: bool = False, converge: bool = False) -> int:
+        """Up to `iters` steps over sampled keyframes; with `converge` and cfg.converge_tol > 0 they
+        stop once the windowed loss stops falling (see MapConfig). Returns the steps run."""
         g, c = self.gaussians, self.cfg
+        win, losses = c.converge_window, []
         for _ in range(iters):
             kf = self._sample_keyframe(uniform)
             w, h = kf.size
@@ -261,6 +264,12 @@ class Mapper:
                 loss = loss + c.lambda_opacity * torch.sigmoid(params["opacity_logits"]).mean()
             loss.backward()
             self.optim.step({k: p.grad for k, p in params.items()})
+            losses.append(float(loss.detach()))
+            if converge and c.converge_tol > 0 and len(losses) >= 2 * win:
+                prev, last = sum(losses[-2 * win:-win]) / win, sum(losses[-win:]) / win
+                if prev - last < c.converge_tol * prev:
+                    break
+        return len(losses)
 
     def _prune(self) -> int:
         g, c = self.gaussians, self.cfg
