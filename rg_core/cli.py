@@ -15,7 +15,7 @@ from pathlib import Path
 
 from .config import ConfigError, load_config
 from .perception.base import BackendError
-from .util import stdout_to_stderr
+from .util import prefetch, stdout_to_stderr
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -164,15 +164,6 @@ def _camera_from_args(args, grounder, result):
     return kf.K, kf.cam_to_world, kf.size[0], kf.size[1]
 
 
-def _prefetch(module: str) -> None:
-    """Import a module in a background thread (a later import of it waits for this one)."""
-    import importlib
-    import threading
-
-    if module not in sys.modules:
-        threading.Thread(target=importlib.import_module, args=(module,), daemon=True).start()
-
-
 def cmd_ground(args, cfg) -> dict:
     from .grounding.pipeline import Grounder
     from .map.store import load_map
@@ -185,7 +176,7 @@ def cmd_ground(args, cfg) -> dict:
     else:
         apply_reasoner(preset, cfg)
     text = make_text_encoder(preset, cfg.models)  # queries in the space of the map's embeddings
-    _prefetch("sklearn.cluster")  # HDBSCAN's import (about a second) overlaps reading the map
+    prefetch("sklearn.cluster")  # HDBSCAN's import (about a second) overlaps reading the map
     mapper = load_map(args.map)
     if getattr(mapper, "field", None) is None:
         raise ValueError(f"{args.map}: the map has no feature field; build it with rg map --supervise --train-field S")
@@ -214,8 +205,6 @@ def cmd_eval(args, cfg) -> dict:
         cfg.models.preset = args.preset
     if args.field_steps is not None:
         cfg.field.steps = args.field_steps
-    elif args.field_seconds is not None:
-        cfg.field.steps = 0  # an explicit --field-seconds beats a config file's field.steps
     from .models import ModelMissingError, apply_reasoner
 
     try:

@@ -69,3 +69,11 @@ def torch_threads(n: int):
     finally:
         if torch.get_num_threads() != old:
             torch.set_num_threads(old)
+
+
+def prefetch(module: str) -> None:
+    """Import a module in a background thread (a later import of it waits for this one)."""
+    import threading
+
+    if module not in sys.modules:
+        threading.Thread(target=importlib.import_module, args=(module,), daemon=True).start()

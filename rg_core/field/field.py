@@ -288,7 +288,7 @@ class FeatureField:
     def train(self, seconds: float | None = None, iters: int | None = None, progress: bool = False) -> dict:
         """Train until `seconds` or `iters` runs out, whichever first; when neither is given,
         cfg.steps steps if > 0, else cfg.seconds. Returns steps, seconds and mean losses (or the
-        reason nothing ran)."""
+        reason nothing ran) and the budget it ran under."""
         import sys
 
         from tqdm import tqdm
@@ -298,20 +298,22 @@ class FeatureField:
                 iters = self.cfg.steps
             else:
                 seconds = self.cfg.seconds
+        budget = {k: v for k, v in (("steps", iters), ("seconds", seconds)) if v is not None}
         t0 = time.perf_counter()
         hist, bar = [], tqdm(total=iters, desc="field", unit="it", disable=not progress, file=sys.stderr)
         while (iters is None or len(hist) < iters) and (seconds is None or time.perf_counter() - t0 < seconds):
             r = self.train_step()
             if "skipped" in r:
                 bar.close()
-                return {"steps": len(hist), "seconds": time.perf_counter() - t0, "skipped": r["skipped"]}
+                return {"steps": len(hist), "seconds": time.perf_counter() - t0, "skipped": r["skipped"],
+                        "budget": budget}
             hist.append(r)
             bar.update(1)
             bar.set_postfix(loss=f"{r['loss']:.4f}")
         bar.close()
         mean = lambda k: float(np.mean([h[k] for h in hist])) if hist else float("nan")
         return {"steps": len(hist), "seconds": time.perf_counter() - t0, "loss": mean("loss"),
-                "language": mean("language"), "instance": mean("instance")}
+                "language": mean("language"), "instance": mean("instance"), "budget": budget}
 
     # ---------------------------------------------------------------------------- queries
 

@@ -44,8 +44,8 @@ def supervise(mapper: Mapper, scene, kind: str, text_encoder, progress: bool = F
 def build_grounder(scene, cfg: RGConfig, supervision: str = "default", field_seconds: float | None = None,
                    mapper: Mapper | None = None, progress: bool = False, reasoner=None) -> tuple[Grounder, dict]:
     """Map the scene's training frames (unless `mapper` is given), supervise, train the field for
-    cfg.field.steps steps when > 0, else `field_seconds` (default cfg.field.seconds), and return a
-    Grounder plus timings (report["field"]["budget"] says which)."""
+    `field_seconds` if given, else its config's budget (field.steps when > 0, else field.seconds),
+    and return a Grounder plus timings (report["field"]["budget"] says which ran)."""
     from ..perception.embed import MiniLMText
 
     report: dict = {}
@@ -62,12 +62,8 @@ def build_grounder(scene, cfg: RGConfig, supervision: str = "default", field_sec
     if mapper.supervision is None or supervision == "oracle":
         report["supervision"] = supervise(mapper, scene, supervision, text, progress, cfg)
     field = getattr(mapper, "field", None) or FeatureField(mapper, cfg.field)
-    secs = cfg.field.seconds if field_seconds is None else field_seconds
-    if cfg.field.steps > 0:  # pinned by count: the same steps however busy the CPU is
-        steps = cfg.field.steps
-        report["field"] = {**field.train(iters=steps, progress=progress), "budget": {"steps": steps}}
-    elif secs > 0:
-        report["field"] = {**field.train(seconds=secs, progress=progress), "budget": {"seconds": secs}}
+    if (field_seconds if field_seconds is not None else cfg.field.steps or cfg.field.seconds) > 0:
+        report["field"] = field.train(seconds=field_seconds, progress=progress)
     log.info("grounding ready: %d Gaussians, %d keyframes, %d field steps", len(mapper.gaussians),
              len(mapper.keyframes), field.steps)
     names = [o.name for o in scene.objects]
