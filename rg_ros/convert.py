@@ -18,7 +18,7 @@ from rg_core.geometry.rotations import rot_to_quat
 from rg_core.grounding.result import GroundedObject as CoreObject
 from rg_core.grounding.result import GroundingResult
 from rg_core.io.ros_images import ENCODINGS
-from rg_core.io.ros_input import transform_to_matrix
+from rg_core.io.ros_input import from_time, transform_to_matrix  # noqa: F401 - from_time: the node's stamps
 from rg_core.io.ros_images import _unsupported, decode_color, decode_depth
 from rg_core.io.ros_images import image_array as _image_array
 
@@ -34,10 +34,6 @@ def to_time(seconds: float) -> Time:
     if sec >= 2**31:
         raise ValueError(f"stamp: {seconds} s does not fit builtin_interfaces/Time")
     return Time(sec=sec, nanosec=nsec)
-
-
-def from_time(stamp: Time) -> float:
-    return stamp.sec + stamp.nanosec * 1e-9
 
 
 def header(frame_id: str = "", stamp: float | Time | None = None) -> Header:

@@ -48,10 +48,14 @@ class InputConfig:
         check_fields(self)
 
 
+def from_time(stamp) -> float:
+    """builtin_interfaces/Time -> seconds."""
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
 def stamp_of(msg) -> float:
     """header.stamp of a message (or a TransformStamped) in seconds."""
-    s = msg.header.stamp
-    return s.sec + s.nanosec * 1e-9
+    return from_time(msg.header.stamp)
 
 
 def transform_to_matrix(tr) -> np.ndarray:
