@@ -190,9 +190,21 @@ class FieldConfig:
     train_width: int = 160
     """Training renders at most this wide (cheaper steps); masks are resampled to it."""
     seconds: float = 80.0
-    """Default budget of `train()`: the first of 5-80 s to pass both oracle checks (bench_field.py)."""
+    """Ceiling of `train()` without a budget: it stops earlier once converged (converge_tol)."""
     steps: Annotated[int, Interval(ge=0)] = 0
-    """> 0: train exactly this many steps instead of `seconds` (runs comparable by count, not CPU speed)."""
+    """> 0: train exactly this many steps instead, no stop test (runs comparable by count, not CPU speed)."""
+    converge_tol: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.01
+    """Stop once the best held-out loss improved by less than this share over converge_window steps
+    (0: always the whole budget). Counted in steps: the same seed stops at the same step on any CPU."""
+    converge_window: Annotated[int, Interval(ge=1)] = 50
+    converge_min_steps: Annotated[int, Interval(ge=0)] = 50
+    """The stop test's floor (steps since the supervision last changed)."""
+    check_every: Annotated[int, Interval(ge=1)] = 10
+    """Steps between held-out loss measurements."""
+    holdout: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.1
+    """Share of each supervised view's pixels never trained on; the held-out loss is measured there."""
+    holdout_views: Annotated[int, Interval(ge=1)] = 4
+    """Supervised views (spread over the map) the held-out loss is measured in."""
     seed: int = 0
     """Random seed of latents, mappers and ray sampling."""
 

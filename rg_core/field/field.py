@@ -19,8 +19,9 @@ import torch
 from ..config import FieldConfig
 from ..geometry.conventions import scale_intrinsics
 from ..render import rasterize
+from .converge import check, holdout_pixels
 from .losses import instance_loss, language_loss, language_targets, shares_group
-from .mappers import ScaleMLP
+from .mappers import ScaleMLP, sparse_adam_step
 from .scale import QuantileScale
 
 _MOVED = 1e-3  # m: on re-association after pruning, a Gaussian this close to an old one is that one
@@ -59,8 +60,9 @@ class FeatureField:
         self.scale_tf: QuantileScale | None = None
         self._pca = None  # (version, mean, components) the language output is expressed in
         self._masks: dict[int, tuple] = {}  # kf -> (id(sup), masks [M, th tw], scales [M], ray weights [th tw])
-        self.steps = 0
-        self.seconds = 0.0
+        self.steps, self.seconds = 0, 0.0
+        self.convergence = None  # converge.Convergence: the stop test on the current supervision
+        self.stop: dict | None = None  # how the last train() ended (converge.describe says it in words)
         mapper.field = self
 
     @property
@@ -167,7 +169,8 @@ class FeatureField:
         self._pca = (ipca.version, pca.mean.clone(), pca.components.clone())
 
     def _train_view(self, kf):
-        """Camera size, K and masks [M, th*tw] (cached) of a keyframe at the training resolution."""
+        """K, size, masks [M, th*tw], scales [M], ray weights [th*tw] and held-out pixels [th*tw]
+        (training never draws them: converge.py measures the stop test there) of a keyframe, cached."""
         sup = self.mapper.supervision.by_keyframe[kf.index]
         w, h = kf.size
         tw = min(self.cfg.train_width, w)
@@ -187,9 +190,10 @@ class FeatureField:
             a = min(max(self.cfg.mask_ray_fraction, 0.0), 1.0) if len(masks) else 0.0
             mf = masks.float()
             weights = (1 - a) / (th * tw) + a * (mf / mf.sum(1, keepdim=True).clamp(min=1)).sum(0) / max(len(masks), 1)
-            hit = (id(sup), masks, scales, weights)
+            held = holdout_pixels(th * tw, self.cfg.holdout, self.cfg.seed, kf.index)
+            hit = (id(sup), masks, scales, weights, held)
             self._masks[kf.index] = hit
-        return K, tw, th, hit[1], hit[2], hit[3]
+        return K, tw, th, *hit[1:]
 
     def _sample_keyframe(self, kfs: list):
         c = self.cfg
@@ -220,29 +224,22 @@ class FeatureField:
                 return {"skipped": why}
             c = self.cfg
             kf = self._sample_keyframe(self._supervised())
-            K, tw, th, masks, scales, weights = self._train_view(kf)
+            K, tw, th, masks, scales, weights, held = self._train_view(kf)
+            weights = torch.where(held, torch.zeros(()), weights)
             targets = self.mapper.supervision.compressed(kf.index)  # [M, 64] in the current basis
             lat = self.latents.clone().requires_grad_(True)
             out = self._render(lat, K, kf.cam_to_world, tw, th, return_ids=c.lambda_consistency > 0)
             P = min(c.rays_per_step, tw * th)
             P = min(P, int((weights > 0).sum()))
             pix = torch.multinomial(weights, P, replacement=False, generator=self._rng)
-            f = out.channels[..., 3:].reshape(-1, c.latent_dim)[pix]  # [P, D]
-            members = masks[:, pix].T  # [P, M]
             # Scales of this step: each mask's own (L_lang of mask i at s_i; at most 16) and
             # `scales_per_step` interval samples (GARField), shared by both losses.
             own = torch.unique(scales)
             if len(own) > 16:
                 own = own[torch.randperm(len(own), generator=self._rng)[:16]]
             sampled = [self._sample_scale(scales) for _ in range(c.scales_per_step)]
-            lang_s = torch.cat([own.double(), torch.tensor(sampled, dtype=torch.float64)])
-            tgt = torch.cat([language_targets(members, scales, targets, float(s)) for s in lang_s])  # [S P, 64]
-            u = self.scale_tf(lang_s).repeat_interleave(P)  # [S P]
-            l_lang = language_loss(self.language_mlp(f.repeat(len(lang_s), 1), u), tgt, c.huber_delta)
-            l_in = f.sum() * 0.0
-            for s in sampled:
-                feat = self.instance_mlp(f, self.scale_tf(s))
-                l_in = l_in + instance_loss(feat, shares_group(members, scales, s), c.margin) / c.scales_per_step
+            f, l_lang, l_in = self._view_loss(out.channels[..., 3:].reshape(-1, c.latent_dim), pix, masks, scales,
+                                              targets, own, sampled)
             loss = c.lambda_language * l_lang + c.lambda_instance * l_in
             if c.lambda_consistency > 0 and out.ids is not None:
                 # Grouping applies the mappers to each Gaussian's own latent, training to blended
@@ -265,43 +262,46 @@ class FeatureField:
             return {"loss": float(loss.detach()), "language": float(l_lang.detach()), "instance": float(l_in.detach()), "keyframe": kf.index,
                     "gaussians_updated": seen, "seconds": dt}
 
-    @torch.no_grad()
+    def _view_loss(self, latent_img, pix, masks, scales, targets, own, sampled):
+        """Pixels pix [P] of one view's latents [h*w, D] -> (f [P, D], L_lang at the `own` and `sampled`
+        scales, L_in at the `sampled` scales): the training step's losses, also the stop test's."""
+        c = self.cfg
+        f = latent_img[pix]  # [P, D]
+        members = masks[:, pix].T  # [P, M]
+        lang_s = torch.cat([own.double(), torch.tensor(sampled, dtype=torch.float64)])
+        tgt = torch.cat([language_targets(members, scales, targets, float(s)) for s in lang_s])  # [S P, 64]
+        u = self.scale_tf(lang_s).repeat_interleave(len(pix))  # [S P]
+        l_lang = language_loss(self.language_mlp(f.repeat(len(lang_s), 1), u), tgt, c.huber_delta)
+        l_in = f.sum() * 0.0
+        for s in sampled:
+            feat = self.instance_mlp(f, self.scale_tf(s))
+            l_in = l_in + instance_loss(feat, shares_group(members, scales, s), c.margin) / max(len(sampled), 1)
+        return f, l_lang, l_in
+
     def _latent_step(self, grad: torch.Tensor | None) -> int:
         """Adam on the rows with a gradient only: Gaussians the step did not see stay bitwise unchanged."""
-        if grad is None:
-            return 0
-        grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0)
-        rows = torch.nonzero((grad != 0).any(1)).squeeze(1)
-        if len(rows) == 0:
-            return 0
-        b1, b2, eps = 0.9, 0.999, 1e-15
-        g = grad[rows]
-        self._t[rows] += 1
-        t = self._t[rows].double()[:, None]
-        m = self._m[rows].mul_(b1).add_(g, alpha=1 - b1)
-        v = self._v[rows].mul_(b2).addcmul_(g, g, value=1 - b2)
-        self._m[rows], self._v[rows] = m, v
-        upd = (m / (1 - b1 ** t).float()) / ((v / (1 - b2 ** t).float()).sqrt() + eps)
-        self.latents[rows] = self.latents[rows] - self.cfg.lr_latents * upd
-        return len(rows)
+        return sparse_adam_step(self.latents, self._m, self._v, self._t, grad, self.cfg.lr_latents)
 
-    def train(self, seconds: float | None = None, iters: int | None = None, progress: bool = False) -> dict:
-        """Train until `seconds` or `iters` runs out, whichever first; when neither is given,
-        cfg.steps steps if > 0, else cfg.seconds. Returns steps, seconds and mean losses (or the
-        reason nothing ran) and the budget it ran under."""
+    def train(self, seconds: float | None = None, iters: int | None = None, progress: bool = False,
+              converge: bool | None = None) -> dict:
+        """Train until `seconds` or `iters` runs out or, with the stop test on, the held-out loss
+        converged (converge.py). No budget given: cfg.steps steps if > 0, else up to cfg.seconds with
+        the stop test (cfg.converge_tol > 0). An explicit budget is fixed unless `converge` is True.
+        Returns steps, seconds, mean losses, the budget and the stop decision (or why nothing ran)."""
         import sys
 
         from tqdm import tqdm
 
         if seconds is None and iters is None:
-            if self.cfg.steps > 0:
-                iters = self.cfg.steps
-            else:
-                seconds = self.cfg.seconds
+            iters, seconds = (self.cfg.steps, None) if self.cfg.steps > 0 else (None, self.cfg.seconds)
+            converge = converge if converge is not None else self.cfg.steps == 0
+        converge = bool(converge) and self.cfg.converge_tol > 0
         budget = {k: v for k, v in (("steps", iters), ("seconds", seconds)) if v is not None}
-        t0 = time.perf_counter()
+        t0, stop = time.perf_counter(), None
         hist, bar = [], tqdm(total=iters, desc="field", unit="it", disable=not progress, file=sys.stderr)
         while (iters is None or len(hist) < iters) and (seconds is None or time.perf_counter() - t0 < seconds):
+            if converge and (stop := check(self)) is not None:
+                break
             r = self.train_step()
             if "skipped" in r:
                 bar.close()
@@ -311,9 +311,14 @@ class FeatureField:
             bar.update(1)
             bar.set_postfix(loss=f"{r['loss']:.4f}")
         bar.close()
+        if stop is None:
+            stop = {"stopped": "steps" if iters is not None and len(hist) >= iters else "seconds",
+                    "steps": self.steps, "seconds": round(self.seconds, 3)}
+        self.stop = stop
         mean = lambda k: float(np.mean([h[k] for h in hist])) if hist else float("nan")
         return {"steps": len(hist), "seconds": time.perf_counter() - t0, "loss": mean("loss"),
-                "language": mean("language"), "instance": mean("instance"), "budget": budget}
+                "language": mean("language"), "instance": mean("instance"), "budget": budget, "stop": stop,
+                **({"curve": [list(h) for h in self.convergence.history]} if converge and self.convergence else {})}
 
     # ---------------------------------------------------------------------------- queries
 
@@ -367,7 +372,7 @@ class FeatureField:
                     "instance_mlp": {k: v.clone() for k, v in self.instance_mlp.state_dict().items()},
                     "scale": self.scale_tf.state_dict() if self.scale_tf is not None else None,
                     "pca_version": int(self._pca[0]) if self._pca is not None else -1,
-                    "steps": self.steps, "seconds": float(self.seconds)}
+                    "steps": self.steps, "seconds": float(self.seconds), "stop": self.stop}
 
     @staticmethod
     def from_state_dict(mapper, d: dict) -> FeatureField:
@@ -387,5 +392,5 @@ class FeatureField:
         if sset is not None and sset.pca.pca is not None and int(d.get("pca_version", -1)) == sset.pca.version:
             p = sset.pca.pca
             f._pca = (sset.pca.version, p.mean.clone(), p.components.clone())
-        f.steps, f.seconds = int(d.get("steps", 0)), float(d.get("seconds", 0.0))
+        f.steps, f.seconds, f.stop = int(d.get("steps", 0)), float(d.get("seconds", 0.0)), d.get("stop")
         return f

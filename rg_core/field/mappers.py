@@ -38,3 +38,26 @@ class ScaleMLP(nn.Module):
         x = torch.cat([latent, self.encode_scale(u)], -1)
         y = self.net(x)
         return nn.functional.normalize(y, dim=-1, eps=1e-8) if self.unit else y
+
+
+@torch.no_grad()
+def sparse_adam_step(param: torch.Tensor, m: torch.Tensor, v: torch.Tensor, t: torch.Tensor,
+                     grad: torch.Tensor | None, lr: float) -> int:
+    """Adam, in place, on the rows of param [N, D] whose grad [N, D] is non-zero (per-row step counts
+    t [N]); the other rows, and their moments m, v [N, D], stay bitwise unchanged. Returns rows moved."""
+    if grad is None:
+        return 0
+    grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0)
+    rows = torch.nonzero((grad != 0).any(1)).squeeze(1)
+    if len(rows) == 0:
+        return 0
+    b1, b2, eps = 0.9, 0.999, 1e-15
+    g = grad[rows]
+    t[rows] += 1
+    tr = t[rows].double()[:, None]
+    mr = m[rows].mul_(b1).add_(g, alpha=1 - b1)
+    vr = v[rows].mul_(b2).addcmul_(g, g, value=1 - b2)
+    m[rows], v[rows] = mr, vr
+    upd = (mr / (1 - b1 ** tr).float()) / ((vr / (1 - b2 ** tr).float()).sqrt() + eps)
+    param[rows] = param[rows] - lr * upd
+    return len(rows)
