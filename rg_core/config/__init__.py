@@ -193,18 +193,18 @@ class FieldConfig:
     """Ceiling of `train()` without a budget: it stops earlier once converged (converge_tol)."""
     steps: Annotated[int, Interval(ge=0)] = 0
     """> 0: train exactly this many steps instead, no stop test (runs comparable by count, not CPU speed)."""
-    converge_tol: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.01
-    """Stop once the best held-out loss improved by less than this share over converge_window steps
-    (0: always the whole budget). Counted in steps: the same seed stops at the same step on any CPU."""
+    converge_tol: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.005
+    """Stop once the best held-out accuracy (field/converge.py) gained less than this over
+    converge_window steps (0: always the whole budget). Counted in steps, not seconds."""
     converge_window: Annotated[int, Interval(ge=1)] = 50
     converge_min_steps: Annotated[int, Interval(ge=0)] = 50
     """The stop test's floor (steps since the supervision last changed)."""
     check_every: Annotated[int, Interval(ge=1)] = 10
-    """Steps between held-out loss measurements."""
+    """Steps between held-out measurements."""
     holdout: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.1
-    """Share of each supervised view's pixels never trained on; the held-out loss is measured there."""
+    """Share of each supervised view's pixels never trained on; the stop test measures there."""
     holdout_views: Annotated[int, Interval(ge=1)] = 4
-    """Supervised views (spread over the map) the held-out loss is measured in."""
+    """Supervised views (spread over the map) the stop test measures in."""
     seed: int = 0
     """Random seed of latents, mappers and ray sampling."""
 

@@ -1,11 +1,14 @@
-"""When to stop training the field: the loss on held-out pixels stops improving.
+"""When to stop training the field: its accuracy on held-out pixels stops improving.
 
 Each supervised view keeps a fixed share of its pixels (`FieldConfig.holdout`) out of training.
-Every `check_every` steps the training loss is measured, without gradients, on a fixed sample of
-those pixels in up to `holdout_views` supervised views at fixed scales. Training has converged once
-the best held-out loss improved by less than `converge_tol` (relative) over the last
-`converge_window` steps. The test counts steps, not seconds, so the same seed stops at the same step
-on any CPU. New supervision (views, PCA basis) changes the evaluation set and restarts the test.
+Every `check_every` steps the field is measured, without gradients, on a fixed sample of those
+pixels in up to `holdout_views` supervised views: language accuracy (the prediction at a mask's
+scale is nearest to that mask's embedding) and instance accuracy (pixel pairs closer than margin / 2
+exactly when they share a group), and the training loss. Training has converged once the best mean
+accuracy gained less than `converge_tol` over the last `converge_window` steps: the accuracies
+flatten where grounding stops changing, while the loss keeps falling slowly for hundreds of steps
+(docs/field.md). Steps are counted, not seconds, so the same seed stops at the same step on any CPU.
+New supervision (views, PCA basis) changes the evaluation set and restarts the test.
 """
 from __future__ import annotations
 
@@ -13,6 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+
+from .losses import shares_group
 
 
 def holdout_pixels(n_pixels: int, share: float, seed: int, view: int) -> torch.Tensor:
@@ -39,21 +44,19 @@ class Convergence:
 
     key: tuple = ()
     start: int = 0                                   # field.steps when this evaluation set began
-    history: list = field(default_factory=list)      # (steps since start, field seconds, held-out loss)
+    history: list = field(default_factory=list)      # (steps since start, field seconds, accuracy, loss,
+                                                     #  language accuracy, instance accuracy) per check
     probes: list = field(default_factory=list)
     decision: dict | None = None
 
     def converged(self, tol: float, window: int) -> bool:
-        """Best held-out loss improved by less than tol (relative) over the last `window` steps."""
+        """The best accuracy gained less than tol over the last `window` steps."""
         ok = [h for h in self.history if np.isfinite(h[2])]  # a diverged measurement is never the best
         if not self.history or self.history[-1][0] < window or not ok:
             return False
         n = self.history[-1][0]
         before = [h[2] for h in ok if h[0] <= n - window]
-        if not before:
-            return False
-        then, now = min(before), min(h[2] for h in ok)
-        return then - now < tol * abs(then)
+        return bool(before) and max(h[2] for h in ok) - max(before) < tol
 
 
 def _probe(field, kf) -> Probe | None:
@@ -80,22 +83,38 @@ def _key(field, kfs) -> tuple:
 
 
 @torch.no_grad()
-def heldout_loss(field, state: Convergence) -> float:
-    """The training loss (without its consistency term) on the held-out probes of `state`."""
-    c, total, n = field.cfg, 0.0, 0
+def heldout_scores(field, state: Convergence) -> dict:
+    """On the held-out probes of `state`: the training loss (without its consistency term), the
+    language accuracy (the prediction at a mask's scale is nearest to that mask's embedding among the
+    view's masks) and the instance accuracy (pairs closer than margin / 2 exactly when they share a group)."""
+    c, loss, lang, inst = field.cfg, [], [], []
     for p in state.probes:
         K, tw, th, masks, scales, _, _ = field._train_view(p.kf)
         out = field._render(field.latents, K, p.kf.cam_to_world, tw, th)
         targets = field.mapper.supervision.compressed(p.kf.index)
-        _, l_lang, l_in = field._view_loss(out.channels[..., 3:].reshape(-1, c.latent_dim), p.pix, masks, scales,
+        f, l_lang, l_in = field._view_loss(out.channels[..., 3:].reshape(-1, c.latent_dim), p.pix, masks, scales,
                                            targets, p.own, p.sampled)
-        total += float(c.lambda_language * l_lang + c.lambda_instance * l_in)
-        n += 1
-    return total / max(n, 1)
+        loss.append(float(c.lambda_language * l_lang + c.lambda_instance * l_in))
+        members = masks[:, p.pix].T  # [P, M]
+        t = torch.nn.functional.normalize(targets.float(), dim=1)
+        for i in range(members.shape[1]):
+            rows = members[:, i]
+            if rows.any():
+                z = field.language_mlp(f[rows], field.scale_tf(float(scales[i])).expand(int(rows.sum())))
+                sim = torch.nn.functional.normalize(z, dim=1) @ t.T  # [p, M]
+                lang.append((sim[:, i] >= sim.max(1).values - 1e-6).float())
+        for s in p.sampled:
+            feat = field.instance_mlp(f, field.scale_tf(s))
+            share = shares_group(members, scales, s)
+            close = torch.cdist(feat, feat) < c.margin / 2
+            upper = torch.ones_like(share).triu(1)
+            inst.append((close == share)[upper].float())
+    mean = lambda xs: float(torch.cat(xs).mean()) if xs else float("nan")
+    return {"loss": float(np.mean(loss)) if loss else float("nan"), "language": mean(lang), "instance": mean(inst)}
 
 
 def check(field) -> dict | None:
-    """Measure the held-out loss (every check_every steps) and return the stop decision once converged."""
+    """Measure the held-out probes (every check_every steps); the stop decision once converged, else None."""
     with field.lock:
         field.sync()
         if field._refresh_supervision() is not None:
@@ -116,16 +135,17 @@ def _check(field) -> dict | None:
     n = field.steps - st.start
     if not st.probes or n % c.check_every or (st.history and st.history[-1][0] == n):
         return None
-    st.history.append((n, field.seconds, heldout_loss(field, st)))
+    sc = heldout_scores(field, st)
+    st.history.append((n, field.seconds, (sc["language"] + sc["instance"]) / 2, sc["loss"], sc["language"], sc["instance"]))
     if n >= c.converge_min_steps and st.converged(c.converge_tol, c.converge_window):
         st.decision = {"stopped": "converged", "steps": field.steps, "seconds": round(field.seconds, 3),
-                       "heldout_loss": round(st.history[-1][2], 6),
-                       "rule": f"held-out loss change < {100 * c.converge_tol:g} % over {c.converge_window} steps"}
+                       "heldout": {k: round(v, 4) for k, v in sc.items()},
+                       "rule": f"held-out accuracy gain < {100 * c.converge_tol:g} points over {c.converge_window} steps"}
     return st.decision
 
 
 def describe(decision: dict | None) -> str:
-    """One line for answers and logs: 'field: converged at 9.8 s, 312 steps, held-out loss change < 1 % ...'."""
+    """One line for answers and logs: 'field: converged at 9.8 s, 312 steps, held-out accuracy gain < ...'."""
     if not decision:
         return ""
     how = "converged" if decision.get("stopped") == "converged" else f"stopped by its {decision.get('stopped')} budget"

@@ -284,7 +284,7 @@ class FeatureField:
 
     def train(self, seconds: float | None = None, iters: int | None = None, progress: bool = False,
               converge: bool | None = None) -> dict:
-        """Train until `seconds` or `iters` runs out or, with the stop test on, the held-out loss
+        """Train until `seconds` or `iters` runs out or, with the stop test on, the held-out accuracy
         converged (converge.py). No budget given: cfg.steps steps if > 0, else up to cfg.seconds with
         the stop test (cfg.converge_tol > 0). An explicit budget is fixed unless `converge` is True.
         Returns steps, seconds, mean losses, the budget and the stop decision (or why nothing ran)."""
