@@ -108,15 +108,16 @@ def cmd_map(args, cfg) -> dict:
         t = time.perf_counter()
         sset = supervise_map(mapper, generator, embedder, progress=not args.quiet)
         report["supervision"] = {**sset.stats(), "seconds_total": round(time.perf_counter() - t, 3), "preset": preset}
-        if args.train_field:
+        if args.train_field is not None:  # the flag alone (0): until converged, field.seconds the ceiling
             from .field import FeatureField
 
-            report["field"] = FeatureField(mapper, cfg.field).train(seconds=args.train_field, progress=not args.quiet)
+            report["field"] = FeatureField(mapper, cfg.field).train(seconds=args.train_field or None,
+                                                                    progress=not args.quiet)
         from .grounding.pipeline import Grounder
 
         # Name embeddings stored with the map: a later `rg ground` embeds only its query.
         report["stored_texts"] = Grounder.from_map(mapper, cfg).store_texts()
-    elif args.train_field:
+    elif args.train_field is not None:
         raise ValueError("--train-field needs --supervise (the field trains on the 2D supervision)")
     report["map"] = str(save_map(mapper, args.out))
     return report
@@ -282,8 +283,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--width", type=_positive, help="working image width")
     p.add_argument("--supervise", action="store_true",
                    help="also compute masks, scales, embeddings and PCA per keyframe (stored in the map)")
-    p.add_argument("--train-field", type=float, metavar="SECONDS",
-                   help="then train the feature field for this many seconds (needs --supervise)")
+    p.add_argument("--train-field", type=float, metavar="SECONDS", nargs="?", const=0.0,
+                   help="then train the feature field (needs --supervise): until it converges, or SECONDS")
     p.add_argument("--preset", help="models of the supervision: offline, paper, paper_cpu (default: config models.preset)")
     _add_bag_args(p)
     common(p)

@@ -26,6 +26,7 @@ from typing import Any, Callable
 import numpy as np
 
 from rg_core.config import RGConfig
+from rg_core.field.converge import describe
 from rg_core.grounding.result import GroundingResult
 from rg_core.perception.query import query_problem
 from rg_core.map.frames import FrameError
@@ -220,10 +221,14 @@ class MapWorker:
             return True
 
     def _train(self) -> bool:
+        """One slice of field training under the stop test. The field answers from its first stop
+        (converged, or train_seconds_max spent) and trains again when the supervision changes."""
         w = self.wcfg
         if self._train_blocked or self._supervised_count == 0:
             return False
         if w.train_seconds_max > 0 and self._train_seconds >= w.train_seconds_max:
+            if self.field is not None and self.field.stop is None:
+                self.field.stop = {"stopped": "seconds", "steps": self.field.steps, "seconds": round(self._train_seconds, 3)}
             return False
         with self.lock:
             if self.field is None:
@@ -234,8 +239,12 @@ class MapWorker:
                     self.log.warning(self._train_blocked)
                     return False
                 self.field = FeatureField(self.mapper, self.cfg.field)
-            r = self.field.train(seconds=w.train_slice)
+            r = self.field.train(seconds=w.train_slice, converge=True, final=False)
         self._train_seconds += float(r.get("seconds", 0.0))
+        if r.get("stop", {}).get("stopped") == "converged":
+            if r["steps"]:
+                self.log.info("%s", describe(r["stop"]))
+            return r["steps"] > 0  # converged on this supervision: nothing to train until it changes
         if "skipped" in r:
             self._train_blocked = str(r["skipped"])
             self.log.info("field training waits: %s", self._train_blocked)
@@ -368,6 +377,7 @@ class MapWorker:
                 "queue_size": self.queue.maxsize, "dropped": self.queue.dropped, "received": self.queue.put_count,
                 "supervised_keyframes": self._supervised_count, "perception": self.perception_state,
                 "field_steps": int(getattr(field, "steps", 0)) if field is not None else 0,
+                "field_stop": describe(getattr(field, "stop", None)),
                 "field_waits": self._train_blocked, "last_error": self.last_error,
                 "worker": "running" if self.alive else ("stopped: " + self.worker_error if self.worker_error
                                                          else "stopped")}

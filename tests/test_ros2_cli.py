@@ -167,8 +167,8 @@ def launched(tmp_path_factory, probe):
         # that every frame it receives is accounted for, and that it maps and answers
         st = wait_for(lambda: probe.status.get("/rg_node") if probe.status.get("/rg_node", {}).get("mapped", 0) >= 3
                       and probe.status["/rg_node"].get("queue") == 0
-                      and probe.status["/rg_node"].get("field_steps", 0) > 0 else None, 300,
-                      lambda: f"frames mapped and field training (status {probe.status.get('/rg_node')})")
+                      and probe.status["/rg_node"].get("field_stop") else None, 300,
+                      lambda: f"frames mapped and the field's first stop (status {probe.status.get('/rg_node')})")
         h["status"] = st
         yield h
     finally:

@@ -295,7 +295,7 @@ def test_ground_publishes_masks_cloud_and_markers(h):
         assert not res.success
         pytest.xfail(res.message)
     # features: supervision and a few seconds of field training when idle
-    wait_for(lambda: h.st().get("field_steps", 0) > 0 and h.st().get("queue") == 0, 240,
+    wait_for(lambda: h.st().get("field_stop") and h.st().get("queue") == 0, 240,
              lambda: f"field training (status {h.st()})")
     res = h.call(h.ground, Ground.Request(query="orange", max_results=1), timeout=120)
     assert res.success, res.message

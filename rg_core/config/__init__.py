@@ -73,8 +73,8 @@ class DemoConfig:
     supervision: str = "oracle"
     """2D supervision of the demo map: "oracle" (ground-truth masks and names: shows the 3D pipeline
     itself) or "default" (the offline mask generator and ConSE, whose names are often wrong)."""
-    field_seconds: float = 30.0
-    """Feature-training budget of the demo (s)."""
+    field_seconds: float = 0.0
+    """Feature-training seconds of the demo; 0: until the field converges (field.seconds the ceiling)."""
 
 
 @section
@@ -199,7 +199,7 @@ class FieldConfig:
     converge_window: Annotated[int, Interval(ge=1)] = 50
     converge_min_steps: Annotated[int, Interval(ge=0)] = 50
     """The stop test's floor (steps since the supervision last changed)."""
-    check_every: Annotated[int, Interval(ge=1)] = 10
+    check_every: Annotated[int, Interval(ge=1)] = 20
     """Steps between held-out measurements."""
     holdout: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.1
     """Share of each supervised view's pixels never trained on; the stop test measures there."""

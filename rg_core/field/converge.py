@@ -96,13 +96,11 @@ def heldout_scores(field, state: Convergence) -> dict:
                                            targets, p.own, p.sampled)
         loss.append(float(c.lambda_language * l_lang + c.lambda_instance * l_in))
         members = masks[:, p.pix].T  # [P, M]
-        t = torch.nn.functional.normalize(targets.float(), dim=1)
-        for i in range(members.shape[1]):
-            rows = members[:, i]
-            if rows.any():
-                z = field.language_mlp(f[rows], field.scale_tf(float(scales[i])).expand(int(rows.sum())))
-                sim = torch.nn.functional.normalize(z, dim=1) @ t.T  # [p, M]
-                lang.append((sim[:, i] >= sim.max(1).values - 1e-6).float())
+        pi, mi = torch.nonzero(members, as_tuple=True)  # every (pixel, mask holding it)
+        if len(pi):
+            z = field.language_mlp(f[pi], field.scale_tf(scales[mi].double()))  # at each mask's own scale
+            sim = torch.nn.functional.normalize(z, dim=1) @ torch.nn.functional.normalize(targets.float(), dim=1).T
+            lang.append((sim[torch.arange(len(pi)), mi] >= sim.max(1).values - 1e-6).float())
         for s in p.sampled:
             feat = field.instance_mlp(f, field.scale_tf(s))
             share = shares_group(members, scales, s)
@@ -144,10 +142,14 @@ def _check(field) -> dict | None:
     return st.decision
 
 
-def describe(decision: dict | None) -> str:
-    """One line for answers and logs: 'field: converged at 9.8 s, 312 steps, held-out accuracy gain < ...'."""
+def describe(decision: dict | None, steps_now: int | None = None) -> str:
+    """One line for answers and logs: 'field: converged at 9.8 s, 312 steps, held-out accuracy gain < ...'
+    (and how many steps it refined since, when `steps_now` is later)."""
     if not decision:
         return ""
-    how = "converged" if decision.get("stopped") == "converged" else f"stopped by its {decision.get('stopped')} budget"
-    tail = f", {decision['rule']}" if decision.get("stopped") == "converged" else ""
-    return f"field: {how} at {decision['seconds']:.1f} s, {decision['steps']} steps{tail}"
+    how = {"converged": "converged", "steps": "trained its step budget", "seconds": "trained its seconds budget"}.get(
+        decision.get("stopped"), f"stopped ({decision.get('stopped')})")
+    tail = f", {decision['rule']}" if decision.get("rule") else ""
+    more = steps_now - decision["steps"] if steps_now is not None else 0
+    return (f"field: {how} at {decision['seconds']:.1f} s, {decision['steps']} steps{tail}"
+            + (f"; refined {more} steps since" if more > 0 else ""))

@@ -283,11 +283,13 @@ class FeatureField:
         return sparse_adam_step(self.latents, self._m, self._v, self._t, grad, self.cfg.lr_latents)
 
     def train(self, seconds: float | None = None, iters: int | None = None, progress: bool = False,
-              converge: bool | None = None) -> dict:
+              converge: bool | None = None, final: bool = True) -> dict:
         """Train until `seconds` or `iters` runs out or, with the stop test on, the held-out accuracy
         converged (converge.py). No budget given: cfg.steps steps if > 0, else up to cfg.seconds with
         the stop test (cfg.converge_tol > 0). An explicit budget is fixed unless `converge` is True.
-        Returns steps, seconds, mean losses, the budget and the stop decision (or why nothing ran)."""
+        Returns steps, seconds, mean losses, the budget and the stop decision (or why nothing ran).
+        The decision is kept as `stop` (the field answers from then on) when converged or when the
+        budget was `final`; a slice of a longer budget (the node's) passes final=False."""
         import sys
 
         from tqdm import tqdm
@@ -314,7 +316,8 @@ class FeatureField:
         if stop is None:
             stop = {"stopped": "steps" if iters is not None and len(hist) >= iters else "seconds",
                     "steps": self.steps, "seconds": round(self.seconds, 3)}
-        self.stop = stop
+        if final or stop["stopped"] == "converged":
+            self.stop = stop
         mean = lambda k: float(np.mean([h[k] for h in hist])) if hist else float("nan")
         return {"steps": len(hist), "seconds": time.perf_counter() - t0, "loss": mean("loss"),
                 "language": mean("language"), "instance": mean("instance"), "budget": budget, "stop": stop,
@@ -393,4 +396,6 @@ class FeatureField:
             p = sset.pca.pca
             f._pca = (sset.pca.version, p.mean.clone(), p.components.clone())
         f.steps, f.seconds, f.stop = int(d.get("steps", 0)), float(d.get("seconds", 0.0)), d.get("stop")
+        if f.stop is None and f.steps:  # saved before the stop test existed
+            f.stop = {"stopped": "unrecorded", "steps": f.steps, "seconds": round(f.seconds, 3)}
         return f

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from ..config import RGConfig
+from ..field.converge import describe
 from ..geometry.conventions import backproject
 from ..geometry.points import map_spacing
 from ..render import rasterize
@@ -186,6 +187,9 @@ class Grounder:
             return "the map has no 2D supervision yet (masks and embeddings per keyframe)"
         if self.field is None or self.field.steps == 0:
             return "the feature field has not been trained yet"
+        if getattr(self.field, "stop", True) is None:
+            return (f"the feature field is still training ({self.field.steps} steps): it answers once its "
+                    f"held-out accuracy converged or its budget ran out")
         return None
 
     # ------------------------------------------------------------------------------ map-derived data
@@ -329,7 +333,9 @@ class Grounder:
                        f"scale {ref.scale:.3f} m")
         res.explanation = (f"{r.explanation} Reference view {kf} (mask similarity {ref.similarity:.2f}); scale "
                            f"{ref.scale:.3f} m; the most relevant pixel ({pk.px}, {pk.py}, relevancy "
-                           f"{pk.relevancy:.2f}) lies in a group of {n} Gaussians.")
+                           f"{pk.relevancy:.2f}) lies in a group of {n} Gaussians. "
+                           f"{describe(self.field.stop, self.field.steps)}.")
+        t["field_training"] = float(self.field.stop["seconds"])  # the training behind this answer (not in total)
         return res
 
     def _reason(self, query: str, mode: str):

@@ -12,12 +12,13 @@ STABILITY_K = "stab or extreme or huge or nan or degenerate or scales_from or op
 class Budgets:
     """Every knob of a report run; `map_overrides` apply to MapConfig in every mapping run."""
 
-    map_iters: tuple = (5, 15, 30)
-    """iters_per_keyframe of the mapping section (include the default to mark it)."""
+    map_iters: tuple = (1, 2, 3, 5, 8, 12, 15, 20, 30)
+    """iters_per_keyframe of the mapping section, log-spaced (include the default to mark it)."""
     map_overrides: dict = field(default_factory=dict)
     """MapConfig fields changed for every run of the report (tiny: fewer iterations)."""
-    field_seconds: tuple = (10.0, 20.0, 40.0, 80.0)
-    """Cumulative feature-training budgets of the grounding section (one field, evaluated at each)."""
+    field_seconds: tuple = (1.0, 2.0, 3.0, 5.0, 8.0, 13.0, 20.0, 30.0, 50.0, 80.0)
+    """Cumulative feature-training budgets of the grounding section (one field, evaluated at each),
+    log-spaced; a second field runs the stop test and is marked on the curve."""
     implicit_per_object: int = 1
     latency_sizes: tuple = (5000, 20000, 100000)
     """Map sizes (Gaussians) for query latency; the scene's own map size is added."""

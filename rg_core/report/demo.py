@@ -32,7 +32,7 @@ def run_demo(cfg: RGConfig, out: Path, progress: bool = True) -> dict:
     result = {"scene": summary, "contact_sheet": str(sheet),
               "seconds": {"synth": round(t1 - t0, 3), "contact_sheet": round(t2 - t1, 3)}}
     if d.ground and scene.queries:
-        grounder, report = build_grounder(scene, cfg, d.supervision, d.field_seconds, progress=progress)
+        grounder, report = build_grounder(scene, cfg, d.supervision, d.field_seconds or None, progress=progress)
         result["map"] = str(save_map(grounder.mapper, out / "scene.rgmap"))
         q = scene.queries[0]
         answers = {}

@@ -1,4 +1,5 @@
-"""PNG line plots (matplotlib, Agg): each curve marks the default budget with a ring and a label."""
+"""PNG line plots (matplotlib, Agg): each curve marks the default budget or the stop test's point with
+a ring and a label; log axes label 1-2-5 steps as plain numbers."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -11,6 +12,7 @@ def line_plot(path: Path, panels: list[dict], title: str = "") -> str:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib import ticker
 
     fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 3.5), squeeze=False)
     for ax, p in zip(axes[0], panels):
@@ -19,10 +21,12 @@ def line_plot(path: Path, panels: list[dict], title: str = "") -> str:
         for x, y, text in p.get("mark", []):
             ax.plot([x], [y], "o", ms=11, mfc="none", mec="red", mew=1.5)
             ax.annotate(text, (x, y), textcoords="offset points", xytext=(6, 6), fontsize=7, color="red")
-        if p.get("logx"):
-            ax.set_xscale("log")
-        if p.get("logy"):
-            ax.set_yscale("log")
+        for axis, on in ((ax.xaxis, p.get("logx")), (ax.yaxis, p.get("logy"))):
+            if on:  # plain-number labels at 1-2-5 steps, none on the minor ticks (they overlapped)
+                (ax.set_xscale if axis is ax.xaxis else ax.set_yscale)("log")
+                axis.set_major_locator(ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+                axis.set_major_formatter(ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+                axis.set_minor_formatter(ticker.NullFormatter())
         ax.set_xlabel(p["x"])
         ax.set_ylabel(p["y"])
         ax.grid(alpha=0.3)

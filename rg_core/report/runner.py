@@ -85,6 +85,10 @@ def recommend(results: dict) -> list[str]:
         enough = min((r for r in grd if r["explicit_amodal"] >= best - 2), key=lambda r: r["field_seconds"])
         field_txt = (f"train the field for at least {enough['budget']:g} s before answering (explicit amodal mIoU "
                      f"{enough['explicit_amodal']:.1f}%, within 2 points of the best {best:.1f}%)")
+        stop = results["grounding"].get("stop")
+        if stop:
+            field_txt += (f"; the default stop test answered after {stop['field_seconds']:g} s ({stop['steps']} steps, "
+                          f"explicit amodal {stop['explicit_amodal']:.1f}%)")
     else:
         field_txt = "train the field for its default budget (the grounding section did not run)"
     for limit in (1.0, 10.0):
