@@ -91,7 +91,11 @@ class MapConfig:
     converge_window: Annotated[int, Interval(ge=1)] = 4
     """Iterations per window of that test; at least two windows run."""
     final_iters: int = 250
-    """Iterations over all keyframes after the last frame (`rg map`; a node refines when idle)."""
+    """Iterations over all keyframes after the last frame (`rg map`; a node refines when idle): the ceiling."""
+    refine_tol: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.003
+    """The final refinement stops once a pass over all keyframes lowered the mean loss by less than
+    this share against the pass before (0: all final_iters)."""
+    refine_min_passes: Annotated[int, Interval(ge=2)] = 3
     window: int = 8
     """Recent keyframes optimised together (older ones are revisited at random too)."""
     max_gaussians: int = 300000

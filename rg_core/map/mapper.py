@@ -216,21 +216,37 @@ class Mapper:
         detail = (valid | covered) & (depth > 0) & (err > self.cfg.seed_colour_error)
         return self._seed(fr, detail, depth, max(1, self.cfg.seed_stride // 2))
 
-    def refine(self, iters: int) -> float:
-        """Optimise over all keyframes uniformly (what a robot does when idle, and `rg map` at the
-        end of a run: `final_iters`); then prune. Returns seconds."""
-        t = time.perf_counter()
-        if self.keyframes and iters > 0:
-            self._optimise(iters, uniform=True)
+    def refine(self, iters: int, converge: bool = True) -> float:
+        """Optimise over all keyframes (what a robot does when idle, and `rg map` at the end of a
+        run: `final_iters`), drawn uniformly; with `converge` and cfg.refine_tol > 0 in passes that
+        visit every keyframe once, in random order, stopping once a pass lowered the mean loss by
+        less than refine_tol against the pass before. Then prune. Returns seconds."""
+        t, c = time.perf_counter(), self.cfg
+        if self.keyframes and iters > 0 and not (converge and c.refine_tol > 0):  # a fixed budget, uniform draws
+            n = len(self.keyframes)
+            for _ in range(iters):
+                self._step(self.keyframes[int(torch.randint(0, n, (1,), generator=self._rng))])
+            self.last_refine = {"iters": iters, "of": iters, "stopped": "budget"}
+            self.totals["pruned"] += self._prune()
+        elif self.keyframes and iters > 0:
+            n, done, passes, prev = len(self.keyframes), 0, 0, None
+            while done < iters:
+                order = torch.randperm(n, generator=self._rng)[: iters - done].tolist()
+                mean = sum(self._step(self.keyframes[i]) for i in order) / len(order)
+                done, passes = done + len(order), passes + 1
+                if (converge and c.refine_tol > 0 and len(order) == n and prev is not None
+                        and passes >= c.refine_min_passes and prev - mean < c.refine_tol * prev):
+                    break
+                prev = mean if len(order) == n else prev
+            self.last_refine = {"iters": done, "passes": passes, "of": iters,
+                                "stopped": "converged" if done < iters else "budget"}
             self.totals["pruned"] += self._prune()
         dt = time.perf_counter() - t
         self.seconds["refine"] = self.seconds.get("refine", 0.0) + dt
         return dt
 
-    def _sample_keyframe(self, uniform: bool = False) -> Keyframe:
+    def _sample_keyframe(self) -> Keyframe:
         n = len(self.keyframes)
-        if uniform:
-            return self.keyframes[int(torch.randint(0, n, (1,), generator=self._rng))]
         r = float(torch.rand(1, generator=self._rng))
         if r < 0.4 or n == 1:
             return self.keyframes[-1]
@@ -239,37 +255,41 @@ class Mapper:
             return self.keyframes[int(torch.randint(lo, n, (1,), generator=self._rng))]
         return self.keyframes[int(torch.randint(0, n, (1,), generator=self._rng))]
 
-    def _optimise(self, iters: int, uniform: bool = False, converge: bool = False) -> int:
+    def _optimise(self, iters: int, converge: bool = False) -> int:
         """Up to `iters` steps over sampled keyframes; with `converge` and cfg.converge_tol > 0 they
         stop once the windowed loss stops falling (see MapConfig). Returns the steps run."""
-        g, c = self.gaussians, self.cfg
+        c = self.cfg
         win, losses = c.converge_window, []
         for _ in range(iters):
-            kf = self._sample_keyframe(uniform)
-            w, h = kf.size
-            params = {k: v.detach().requires_grad_(True) for k, v in g.tensors().items()}
-            cam = self.camera(kf.K, kf.cam_to_world, w, h)
-            out = rasterize(params["means"], torch.exp(params["log_scales"]), params["quats"],
-                            torch.sigmoid(params["opacity_logits"]), params["colors"], cam)
-            valid = kf.depth > 0
-            nv = valid.sum().clamp(min=1)
-            # Colour: the whole image against the render composited over the learnt background
-            # (Gaussians grow into depth holes; pixels no Gaussian reaches teach the background).
-            rgb = out.channels + (1.0 - out.alpha)[..., None] * params["background"]
-            l_rgb = (rgb - kf.rgb).abs().mean()
-            l_depth = ((out.depth - kf.depth).abs() * valid).sum() / nv
-            l_alpha = ((1.0 - out.alpha) * valid).sum() / nv
-            loss = l_rgb + c.lambda_depth * l_depth + c.lambda_alpha * l_alpha
-            if c.lambda_opacity > 0:
-                loss = loss + c.lambda_opacity * torch.sigmoid(params["opacity_logits"]).mean()
-            loss.backward()
-            self.optim.step({k: p.grad for k, p in params.items()})
-            losses.append(float(loss.detach()))
+            losses.append(self._step(self._sample_keyframe()))
             if converge and c.converge_tol > 0 and len(losses) >= 2 * win:
                 prev, last = sum(losses[-2 * win:-win]) / win, sum(losses[-win:]) / win
                 if prev - last < c.converge_tol * prev:
                     break
         return len(losses)
+
+    def _step(self, kf: Keyframe) -> float:
+        """One optimisation step on one keyframe; returns its loss."""
+        g, c = self.gaussians, self.cfg
+        w, h = kf.size
+        params = {k: v.detach().requires_grad_(True) for k, v in g.tensors().items()}
+        cam = self.camera(kf.K, kf.cam_to_world, w, h)
+        out = rasterize(params["means"], torch.exp(params["log_scales"]), params["quats"],
+                        torch.sigmoid(params["opacity_logits"]), params["colors"], cam)
+        valid = kf.depth > 0
+        nv = valid.sum().clamp(min=1)
+        # Colour: the whole image against the render composited over the learnt background
+        # (Gaussians grow into depth holes; pixels no Gaussian reaches teach the background).
+        rgb = out.channels + (1.0 - out.alpha)[..., None] * params["background"]
+        l_rgb = (rgb - kf.rgb).abs().mean()
+        l_depth = ((out.depth - kf.depth).abs() * valid).sum() / nv
+        l_alpha = ((1.0 - out.alpha) * valid).sum() / nv
+        loss = l_rgb + c.lambda_depth * l_depth + c.lambda_alpha * l_alpha
+        if c.lambda_opacity > 0:
+            loss = loss + c.lambda_opacity * torch.sigmoid(params["opacity_logits"]).mean()
+        loss.backward()
+        self.optim.step({k: p.grad for k, p in params.items()})
+        return float(loss.detach())
 
     def _prune(self) -> int:
         g, c = self.gaussians, self.cfg
