@@ -256,7 +256,7 @@ class MapWorker:
         if n <= 0 or not self.mapper.keyframes or self._refined_iters >= self.cfg.map.final_iters:
             return False
         with self.lock:
-            self.mapper.refine(n)
+            self.mapper.refine(n, converge=False)  # fixed slices: the node refines whenever idle
         self._refined_iters += n
         return True
 

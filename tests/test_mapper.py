@@ -209,3 +209,24 @@ def test_keyframe_iterations_stop_on_convergence(synth_scene, tol, expect):
         mapper.add_frame(*frame_args(f))
     per_kf = mapper.stats()["keyframe_iters"] / len(mapper.keyframes)
     assert per_kf == (20 if expect == "ceiling" else 6), mapper.stats()
+
+
+def test_final_refinement_stops_on_convergence(synth_scene):
+    """refine_tol 0: the whole final budget; a tolerance no pass can meet stops after the floor of
+    refine_min_passes full passes; a tiny one runs until a pass barely helps, fewer than the ceiling.
+    The same seed stops at the same iteration."""
+    runs = {}
+    for tol in (0.0, 0.99, 1e-3, 1e-3):
+        mapper = Mapper(MapConfig(**{**SMALL, "refine_tol": tol, "refine_min_passes": 3}))
+        for f in synth_scene.train[:4]:
+            mapper.add_frame(*frame_args(f))
+        n = len(mapper.keyframes)
+        mapper.refine(60 * n)
+        r = mapper.last_refine
+        runs.setdefault(tol, []).append((r, mapper.gaussians.means.clone()))
+    assert runs[0.0][0][0] == {"iters": 60 * n, "of": 60 * n, "stopped": "budget"}
+    assert runs[0.99][0][0]["iters"] == 3 * n and runs[0.99][0][0]["stopped"] == "converged"
+    (a, ma), (b, mb) = runs[1e-3]
+    assert 3 * n < a["iters"] < 60 * n and a["stopped"] == "converged" and a == b and torch.equal(ma, mb)
+    mapper.refine(10, converge=False)  # a fixed budget on request (the node's idle slices)
+    assert mapper.last_refine["iters"] == 10
