@@ -208,7 +208,8 @@ class MapWorker:
             gen, emb = self._perception
             t = time.perf_counter()
             try:
-                sset, mv = supervise_map_multiview(self.mapper, gen, emb)  # as rg eval
+                sset, mv = supervise_map_multiview(self.mapper, gen, emb,
+                                                   views_per_object=self.cfg.models.views_per_object)
             except Exception as exc:  # noqa: BLE001 - a perception failure must not stop mapping
                 self.log.error("supervision failed, feature training is off: %s: %s", type(exc).__name__, exc)
                 self.wcfg.features = False
@@ -228,7 +229,8 @@ class MapWorker:
             return False
         if w.train_seconds_max > 0 and self._train_seconds >= w.train_seconds_max:
             if self.field is not None and self.field.stop is None:
-                self.field.stop = {"stopped": "seconds", "steps": self.field.steps, "seconds": round(self._train_seconds, 3)}
+                self.field.stop = {"stopped": "seconds", "steps": self.field.steps,
+                                   "seconds": round(self._train_seconds, 3)}
             return False
         with self.lock:
             if self.field is None:

@@ -58,3 +58,32 @@ def test_bad_inputs(conse_embedder):
     with pytest.raises(ValueError, match="differ in size"):
         build_supervision(np.zeros((10, 12, 3), np.uint8), np.ones((10, 10), np.float32), np.eye(3),
                           make_mask_generator("rgbd"), conse_embedder)
+
+
+def test_each_object_embedded_in_at_most_k_views(synth_scene, conse_embedder, tmp_path):
+    """views_per_object: masks and scales for every keyframe, embeddings only for each object's k
+    largest views; every other mask takes its object's mean. The result survives save/load and a
+    second call embeds nothing new."""
+    from rg_core.perception.multiview import associate
+    from rg_core.perception.supervision import supervise_map_multiview
+
+    mapper = Mapper(MapConfig(width=160, iters_per_keyframe=3))
+    stream_frames(mapper, synth_scene.train[:6], progress=False)
+    sset, st = supervise_map_multiview(mapper, make_mask_generator("rgbd"), conse_embedder, views_per_object=2)
+    keys, labels = associate(mapper, sset)
+    own = np.array([bool(sset.by_keyframe[k].owned()[m]) for k, m in keys])
+    per_object = np.bincount(labels, weights=own.astype(float))
+    assert per_object.max() <= 2 and per_object.min() >= 1  # every object has its own embedding, at most 2
+    assert st["masks_embedded"] == own.sum() < st["masks_total"] == len(keys)  # some masks were left out
+    for lab in np.unique(labels):  # one embedding per object: the mean of its own views
+        rows = [sset.by_keyframe[k].embeddings[m] for (k, m), l in zip(keys, labels) if l == lab]
+        for r in rows[1:]:
+            torch.testing.assert_close(r, rows[0])
+    for s in sset.by_keyframe.values():
+        torch.testing.assert_close(s.embeddings.norm(dim=-1), torch.ones(len(s.scales)))
+    assert sset.pca.pca is not None and sset.pca.pca.n_fit == len(keys)
+    again, st2 = supervise_map_multiview(mapper, make_mask_generator("rgbd"), conse_embedder, views_per_object=2)
+    assert again is sset and st2["embedded_now"] == 0
+    back = load_map(save_map(mapper, tmp_path / "m.rgmap"))
+    for k, s in sset.by_keyframe.items():
+        assert np.array_equal(back.supervision.by_keyframe[k].owned(), s.owned())

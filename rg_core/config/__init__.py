@@ -340,6 +340,9 @@ class ModelsConfig:
     """SAM prompts per decoder call."""
     threads: int = 0
     """onnxruntime intra-op threads of the exported models (0 = its default)."""
+    views_per_object: Annotated[int, Interval(ge=0)] = 3
+    """Default supervision embeds each object (its masks associated across keyframes) in at most this
+    many views, the largest first; its other masks take the object's mean (0: every mask)."""
 
 
 @section

@@ -32,7 +32,7 @@ def supervise(mapper: Mapper, scene, kind: str, text_encoder, progress: bool = F
         from ..perception.supervision import supervise_map_multiview
 
         sset, stats = supervise_map_multiview(mapper, *make_perception(cfg.models.preset, cfg.models),
-                                              progress)
+                                              progress, cfg.models.views_per_object)
         sset.pca.fit_now()
         return {**sset.stats(), "multiview": stats, "seconds": round(time.perf_counter() - t, 3)}
     else:

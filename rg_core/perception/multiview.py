@@ -91,12 +91,14 @@ def _merge_one_per_keyframe(n: int, kf: np.ndarray, i: np.ndarray, j: np.ndarray
     return np.unique(roots, return_inverse=True)[1].reshape(-1)
 
 
-def aggregate_multiview(mapper, sset, min_jaccard: float = 0.5, max_scale_ratio: float = 1.5) -> dict:
-    """Replace each mask's embedding by its object's multi-view mean (the per-view embedding stays
-    in `embeddings_view`), refit the PCA and return statistics."""
+def aggregate_multiview(mapper, sset, min_jaccard: float = 0.5, max_scale_ratio: float = 1.5,
+                        keys: tuple | None = None) -> dict:
+    """Replace each mask's embedding by its object's multi-view mean over the masks with their own
+    embedding (the per-view embedding stays in `embeddings_view`), refit the PCA and return
+    statistics. `keys`: an association already made, (keys, labels) of `associate`."""
     from .pca import PCA
 
-    keys, labels = associate(mapper, sset, min_jaccard, max_scale_ratio)
+    keys, labels = keys if keys is not None else associate(mapper, sset, min_jaccard, max_scale_ratio)
     if not keys:
         return {"masks": 0, "objects": 0}
     for k in {k for k, _ in keys}:
@@ -104,7 +106,8 @@ def aggregate_multiview(mapper, sset, min_jaccard: float = 0.5, max_scale_ratio:
         if getattr(sup, "embeddings_view", None) is None:
             sup.embeddings_view = sup.embeddings.clone()
     view = torch.stack([sset.by_keyframe[k].embeddings_view[m] for k, m in keys]).float()  # [K, D]
-    area = torch.tensor([float(sset.by_keyframe[k].masks[m].sum()) for k, m in keys])
+    area = torch.tensor([float(sset.by_keyframe[k].masks[m].sum()) * bool(sset.by_keyframe[k].owned()[m])
+                         for k, m in keys])  # masks without their own embedding do not vote
     lab = torch.from_numpy(labels)
     G = int(lab.max()) + 1
     mean = torch.zeros(G, view.shape[1]).index_add_(0, lab, view * area[:, None])

@@ -25,6 +25,11 @@ class KeyframeSupervision:
     dropped: int = 0           # masks without a measurable scale or crop
     embeddings_view: torch.Tensor | None = None  # [M, D] per-view embeddings once `embeddings` hold
                                                  # multi-view means (perception.multiview)
+    own: np.ndarray | None = None  # [M] bool: masks with their own embedding (None: all); the others
+                                   # take their object's multi-view mean (supervise_map_multiview)
+
+    def owned(self) -> np.ndarray:  # [M] bool
+        return np.ones(len(self.scales), bool) if self.own is None else self.own
 
     def state_dict(self) -> dict:
         M, h, w = self.masks.shape
@@ -32,7 +37,8 @@ class KeyframeSupervision:
                 "scores": torch.from_numpy(self.scores), "levels": torch.from_numpy(self.levels.astype(np.int8)),
                 "scales": torch.from_numpy(self.scales), "embeddings": self.embeddings.float(),
                 "seconds": {k: float(v) for k, v in self.seconds.items()}, "dropped": int(self.dropped),
-                "embeddings_view": self.embeddings_view.float() if self.embeddings_view is not None else None}
+                "embeddings_view": self.embeddings_view.float() if self.embeddings_view is not None else None,
+                "own": torch.from_numpy(self.own.copy()) if self.own is not None else None}
 
     @staticmethod
     def from_state_dict(d: dict) -> "KeyframeSupervision":
@@ -40,14 +46,16 @@ class KeyframeSupervision:
         masks = np.unpackbits(d["masks"].numpy(), axis=1, count=h * w).reshape(M, h, w).astype(bool)
         return KeyframeSupervision(masks, d["scores"].numpy(), d["levels"].numpy(), d["scales"].numpy(),
                                    d["embeddings"].float(), dict(d.get("seconds", {})), int(d.get("dropped", 0)),
-                                   d["embeddings_view"].float() if d.get("embeddings_view") is not None else None)
+                                   d["embeddings_view"].float() if d.get("embeddings_view") is not None else None,
+                                   d["own"].numpy().astype(bool) if d.get("own") is not None else None)
 
 
 def build_supervision(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, generator: MaskGenerator,
                       embedder: Embedder, rendered_depth: np.ndarray | None = None,
-                      min_points: int = 20) -> KeyframeSupervision:
+                      min_points: int = 20, embed: bool = True) -> KeyframeSupervision:
     """rgb [h, w, 3] uint8, depth [h, w] m, K [3, 3]; `rendered_depth` from the map fills depth holes
-    when measuring scales. Masks whose scale cannot be measured are dropped (and counted)."""
+    when measuring scales. Masks whose scale cannot be measured are dropped (and counted).
+    embed=False: masks and scales only (zero embeddings, `own` all False; embed_masks fills them)."""
     if rgb.shape[:2] != depth.shape:
         raise ValueError(f"supervision: rgb {rgb.shape[:2]} and depth {depth.shape} differ in size")
     t0 = time.perf_counter()
@@ -62,14 +70,32 @@ def build_supervision(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, generat
         except (MaskScaleError, ValueError):
             continue
     t2 = time.perf_counter()
-    emb = embedder.encode_masks(rgb, kept) if kept else torch.zeros(0, embedder.dim)
+    emb = embedder.encode_masks(rgb, kept) if kept and embed else torch.zeros(len(kept), embedder.dim)
     t3 = time.perf_counter()
     h, w = depth.shape
     return KeyframeSupervision(
         masks=np.stack([m.mask for m in kept]) if kept else np.zeros((0, h, w), bool),
         scores=np.array([m.score for m in kept], np.float32), levels=np.array([m.level for m in kept], np.int8),
         scales=np.array(scales, np.float32), embeddings=emb,
-        seconds={"masks": t1 - t0, "scales": t2 - t1, "embed": t3 - t2}, dropped=len(masks) - len(kept))
+        seconds={"masks": t1 - t0, "scales": t2 - t1, "embed": t3 - t2}, dropped=len(masks) - len(kept),
+        own=None if embed else np.zeros(len(kept), bool))
+
+
+def embed_masks(sup: KeyframeSupervision, rgb: np.ndarray, embedder: Embedder, which: np.ndarray) -> int:
+    """Embed the masks `which` [M] bool of a keyframe (rgb [h, w, 3] uint8) that lack their own
+    embedding; returns how many were embedded."""
+    from .masks import Mask
+
+    todo = np.flatnonzero(which & ~sup.owned())
+    if len(todo):
+        t = time.perf_counter()
+        emb = embedder.encode_masks(rgb, [Mask(sup.masks[i], float(sup.scores[i]), int(sup.levels[i])) for i in todo])
+        for e in (sup.embeddings, sup.embeddings_view):
+            if e is not None:
+                e[torch.from_numpy(todo)] = emb.to(e)
+        sup.own = sup.owned() | np.isin(np.arange(len(sup.scales)), todo)
+        sup.seconds["embed"] = sup.seconds.get("embed", 0.0) + time.perf_counter() - t
+    return len(todo)
 
 
 TEXT_MODEL = "all-MiniLM-L6-v2"  # the model of SupervisionSet.text_embeddings (rg_core.perception.minilm)
@@ -138,9 +164,11 @@ class SupervisionSet:
         return s
 
 
-def supervise_map(mapper, generator: MaskGenerator, embedder: Embedder, progress: bool = False) -> SupervisionSet:
+def supervise_map(mapper, generator: MaskGenerator, embedder: Embedder, progress: bool = False,
+                  embed: bool = True) -> SupervisionSet:
     """Compute supervision for every keyframe of `mapper` that has none yet (once per keyframe);
-    the map's rendered depth fills sensor depth holes when measuring scales."""
+    the map's rendered depth fills sensor depth holes when measuring scales. embed=False: masks and
+    scales only (supervise_map_multiview embeds what it needs)."""
     import sys
 
     from tqdm import tqdm
@@ -154,15 +182,48 @@ def supervise_map(mapper, generator: MaskGenerator, embedder: Embedder, progress
         with torch.no_grad():
             rendered = mapper.render(kf.K, kf.cam_to_world, w, h).depth.numpy() if len(mapper.gaussians) else None
         rgb = (kf.rgb.numpy() * 255.0).round().clip(0, 255).astype(np.uint8)
-        sset.add(kf.index, build_supervision(rgb, kf.depth.numpy(), kf.K, generator, embedder, rendered))
+        sup = build_supervision(rgb, kf.depth.numpy(), kf.K, generator, embedder, rendered, embed=embed)
+        if embed:
+            sset.add(kf.index, sup)
+        else:  # zero rows must not reach the PCA: multiview refits it on the filled embeddings
+            sset.by_keyframe[kf.index] = sup
     return sset
 
 
-def supervise_map_multiview(mapper, generator: MaskGenerator, embedder: Embedder,
-                            progress: bool = False) -> tuple[SupervisionSet, dict]:
+def supervise_map_multiview(mapper, generator: MaskGenerator, embedder: Embedder, progress: bool = False,
+                            views_per_object: int = 0) -> tuple[SupervisionSet, dict]:
     """supervise_map, then one embedding per object across keyframes (multiview.aggregate_multiview):
-    the supervision `rg eval` and the node train the field on. -> (set, association statistics)."""
-    from .multiview import aggregate_multiview
+    the supervision `rg eval` and the node train the field on. -> (set, association statistics).
+    views_per_object > 0: masks and scales first; after associating them, an object is embedded in at
+    most that many views (its largest masks; views already embedded count); its other masks take the
+    object's mean, and a keyframe none of whose masks needs an embedding is not embedded at all."""
+    from .multiview import aggregate_multiview, associate
 
-    sset = supervise_map(mapper, generator, embedder, progress=progress)
-    return sset, aggregate_multiview(mapper, sset)
+    if views_per_object <= 0:
+        sset = supervise_map(mapper, generator, embedder, progress=progress)
+        return sset, aggregate_multiview(mapper, sset)
+    sset = supervise_map(mapper, generator, embedder, progress=progress, embed=False)
+    keys, labels = associate(mapper, sset)
+    want: dict[int, np.ndarray] = {k: sup.owned().copy() for k, sup in sset.by_keyframe.items()}
+    have = np.zeros(int(labels.max()) + 1 if len(labels) else 0, np.int64)
+    for (k, m), lab in zip(keys, labels):
+        have[lab] += int(want[k][m])
+    area = np.array([sset.by_keyframe[k].masks[m].sum() for k, m in keys])
+    for r in np.argsort(-area, kind="stable"):
+        (k, m), lab = keys[r], labels[r]
+        if not want[k][m] and have[lab] < views_per_object:
+            want[k][m], have[lab] = True, have[lab] + 1
+    kfs = {kf.index: kf for kf in mapper.keyframes}
+    embedded = skipped_kf = 0
+    for k, sup in sset.by_keyframe.items():
+        need = want[k] & ~sup.owned()
+        if not need.any():
+            skipped_kf += int(sup.own is not None and not sup.own.any() and len(sup.scales) > 0)
+            continue
+        rgb = (kfs[k].rgb.numpy() * 255.0).round().clip(0, 255).astype(np.uint8)
+        embedded += embed_masks(sup, rgb, embedder, need)
+    stats = aggregate_multiview(mapper, sset, keys=(keys, labels))
+    owned = sum(int(s.owned().sum()) for s in sset.by_keyframe.values())
+    total = sum(len(s.scales) for s in sset.by_keyframe.values())
+    return sset, {**stats, "embedded_now": embedded, "masks_embedded": owned, "masks_total": total,
+                  "keyframes_not_embedded": skipped_kf}
