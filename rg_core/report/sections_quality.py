@@ -75,7 +75,7 @@ def grounding(ctx) -> dict:
         done += g.field.train(seconds=b - done, progress=ctx.progress)["seconds"]
         rows.append(_ground_row(done, g.field.steps, ctx.evaluate(g)))
         rows[-1]["budget"] = b
-    ctx.cache["grounder_main"] = g
+    ctx.cache["grounder_main"], ctx.cache["grounding_rows"] = g, rows
     for r in rows + [stop]:
         r["first_answer_s"] = round(mrow["seconds"] + sup_s + r["field_seconds"], 2)
     series = lambda x: [(f"{k} {v}", [r[x] for r in rows], [r[f"{k}_{v}"] for r in rows])  # noqa: E731
@@ -167,6 +167,21 @@ def _saving_row(name, off_by, on, off, t_key, metrics):
     return row
 
 
+def _field_stop_saving(ctx, mapper) -> dict:
+    """The field's stop test against training the whole ceiling (field.seconds): seconds of training,
+    mIoU change (the grounding section's row at the ceiling when it ran, else trained here)."""
+    ceiling = ctx.cfg.field.seconds
+    gs, rep = ctx.grounder(mapper, None)
+    on = {**_ground_row(0, 0, ctx.evaluate(gs)), "s": rep["field"]["seconds"]}
+    off = next((r for r in ctx.cache.get("grounding_rows", []) if r["budget"] == ceiling), None)
+    if off is None:
+        go, rep_o = ctx.grounder(mapper, ceiling)
+        off = {**_ground_row(rep_o["field"]["seconds"], go.field.steps, ctx.evaluate(go))}
+    off = {**off, "s": off["field_seconds"]}
+    return _saving_row(f"field stop test ({gs.field.steps} steps)", f"train the whole field.seconds ({ceiling:g} s)",
+                       on, off, "s", ("explicit_visible", "explicit_amodal", "implicit_visible"))
+
+
 def savings(ctx) -> dict:
     """Each saving of the pipeline against turning it off, same scene, same run."""
     _, base = ctx.base()
@@ -174,7 +189,8 @@ def savings(ctx) -> dict:
     for name, off_by, kw in (
             ("keyframe skipping", "kf_new_fraction=-1 (every frame a keyframe)", dict(kf_new_fraction=-1.0)),
             ("seed only unexplained pixels", "SeedEverywhereMapper (seed every valid-depth block)", dict(mapper_cls=SeedEverywhereMapper)),
-            ("pruning", "prune_opacity=0, prune_scale=1e9", dict(prune_opacity=0.0, prune_scale=1e9))):
+            ("pruning", "prune_opacity=0, prune_scale=1e9", dict(prune_opacity=0.0, prune_scale=1e9)),
+            ("final refinement stop test", "refine_tol=0 (all final_iters)", dict(refine_tol=0.0))):
         _, off = ctx.map_run(("off", name), **kw)
         mrows.append(_saving_row(name, off_by, base, off, "seconds", ("psnr", "depth_err_mm", "gaussians")))
     grows = []
@@ -215,14 +231,16 @@ def savings(ctx) -> dict:
         b["s"] = rep["field"]["seconds"] / max(rep["field"]["steps"], 1)
         grows.append(_saving_row(f"train the field at {ctx.cfg.field.train_width} px", f"train_width={full_w}",
                                  a, b, "s", ("explicit_visible", "explicit_amodal", "implicit_visible")))
+    grows.append(_field_stop_saving(ctx, g.mapper))
     mcols = ("saving", "turned off by", "seconds on", "seconds off", "time saved s", "time saved %", "psnr change",
              "depth_err_mm change", "gaussians on", "gaussians off")
     gcols = ("saving", "turned off by", "seconds on", "seconds off", "time saved s", "time saved %",
              "explicit_visible change", "explicit_amodal change")
     return {"text": [f"Mapping savings: total mapping seconds against the default map ({base['seconds']:.1f} s); "
                      "error change = on - off (PSNR dB, depth mm: negative depth change = saving is more accurate).",
-                     "Grounding savings: seconds per query (clustering), reasoning seconds per query (reasoner), or "
-                     f"seconds per field step (train width); field trained {ctx.b.savings_field_seconds:g} s; mIoU in %."],
+                     "Grounding savings: seconds per query (clustering), reasoning seconds per query (reasoner), "
+                     f"seconds per field step (train width; field trained {ctx.b.savings_field_seconds:g} s) or "
+                     "field training seconds (stop test); mIoU in %."],
             "tables": [_table("Mapping savings", mcols, [[r.get(c, "") for c in mcols] for r in mrows]),
                        _table("Grounding savings", gcols, [[r.get(c, "") for c in gcols] for r in grows])],
             "plots": [], "data": {"mapping": mrows, "grounding": grows}}
