@@ -255,7 +255,8 @@ class FeatureField:
                 if p.grad is not None:
                     p.grad.nan_to_num_(0.0, 0.0, 0.0)
             self.mlp_optim.step()
-            seen = self._latent_step(lat.grad)
+            # Adam on the latent rows with a gradient only: Gaussians the step did not see stay unchanged.
+            seen = sparse_adam_step(self.latents, self._m, self._v, self._t, lat.grad, c.lr_latents)
             self.steps += 1
             dt = time.perf_counter() - t0
             self.seconds += dt
@@ -277,10 +278,6 @@ class FeatureField:
             feat = self.instance_mlp(f, self.scale_tf(s))
             l_in = l_in + instance_loss(feat, shares_group(members, scales, s), c.margin) / max(len(sampled), 1)
         return f, l_lang, l_in
-
-    def _latent_step(self, grad: torch.Tensor | None) -> int:
-        """Adam on the rows with a gradient only: Gaussians the step did not see stay bitwise unchanged."""
-        return sparse_adam_step(self.latents, self._m, self._v, self._t, grad, self.cfg.lr_latents)
 
     def train(self, seconds: float | None = None, iters: int | None = None, progress: bool = False,
               converge: bool | None = None, final: bool = True) -> dict:

@@ -222,23 +222,21 @@ class Mapper:
         visit every keyframe once, in random order, stopping once a pass lowered the mean loss by
         less than refine_tol against the pass before. Then prune. Returns seconds."""
         t, c = time.perf_counter(), self.cfg
-        if self.keyframes and iters > 0 and not (converge and c.refine_tol > 0):  # a fixed budget, uniform draws
-            n = len(self.keyframes)
-            for _ in range(iters):
-                self._step(self.keyframes[int(torch.randint(0, n, (1,), generator=self._rng))])
-            self.last_refine = {"iters": iters, "of": iters, "stopped": "budget"}
-            self.totals["pruned"] += self._prune()
-        elif self.keyframes and iters > 0:
+        if self.keyframes and iters > 0:
             n, done, passes, prev = len(self.keyframes), 0, 0, None
+            if not (converge and c.refine_tol > 0):  # a fixed budget, uniform draws
+                for _ in range(iters):
+                    self._step(self.keyframes[int(torch.randint(0, n, (1,), generator=self._rng))])
+                done = iters
             while done < iters:
                 order = torch.randperm(n, generator=self._rng)[: iters - done].tolist()
                 mean = sum(self._step(self.keyframes[i]) for i in order) / len(order)
                 done, passes = done + len(order), passes + 1
-                if (converge and c.refine_tol > 0 and len(order) == n and prev is not None
-                        and passes >= c.refine_min_passes and prev - mean < c.refine_tol * prev):
+                full = len(order) == n
+                if full and prev is not None and passes >= c.refine_min_passes and prev - mean < c.refine_tol * prev:
                     break
-                prev = mean if len(order) == n else prev
-            self.last_refine = {"iters": done, "passes": passes, "of": iters,
+                prev = mean if full else prev
+            self.last_refine = {"iters": done, **({"passes": passes} if passes else {}), "of": iters,
                                 "stopped": "converged" if done < iters else "budget"}
             self.totals["pruned"] += self._prune()
         dt = time.perf_counter() - t

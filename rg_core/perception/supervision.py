@@ -93,7 +93,9 @@ def embed_masks(sup: KeyframeSupervision, rgb: np.ndarray, embedder: Embedder, w
         for e in (sup.embeddings, sup.embeddings_view):
             if e is not None:
                 e[torch.from_numpy(todo)] = emb.to(e)
-        sup.own = sup.owned() | np.isin(np.arange(len(sup.scales)), todo)
+        own = sup.owned().copy()
+        own[todo] = True
+        sup.own = own
         sup.seconds["embed"] = sup.seconds.get("embed", 0.0) + time.perf_counter() - t
     return len(todo)
 
