@@ -63,9 +63,15 @@ def test_reference_matches_naive_loop_and_is_tile_independent():
     assert float(alpha.max()) > 0.5  # the scene is not empty
 
 
-@pytest.mark.parametrize("n, w, h, c", [(300, 40, 30, 3), (2000, 64, 48, 36), (500, 33, 17, 5)])
-def test_fast_matches_reference_forward_and_gradients(n, w, h, c):
-    seed = fresh_seed()
+# Scenes where a pixel sits on the alpha >= 1/255 test: fused multiply-adds in the kernel's power, or an
+# exp off by one ulp, once put it on the other side of the test than the reference.
+REGRESSION_SEEDS = [(300, 40, 30, 3, 1728851730), (500, 33, 17, 5, 1483704300), (500, 33, 17, 5, 216028402)]
+
+
+@pytest.mark.parametrize("n, w, h, c, seed", [(300, 40, 30, 3, None), (2000, 64, 48, 36, None), (500, 33, 17, 5, None),
+                                              *REGRESSION_SEEDS])
+def test_fast_matches_reference_forward_and_gradients(n, w, h, c, seed):
+    seed = fresh_seed() if seed is None else seed
     g = torch.Generator().manual_seed(seed)
     params = random_gaussians(n, c, g)
     cam = pinhole(w, h)

@@ -4,7 +4,7 @@ import math
 
 import pytest
 import torch
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from render_util import pinhole, random_gaussians, render_with_grads
@@ -203,6 +203,9 @@ def test_property_input_order_does_not_matter(args):
     g = torch.Generator().manual_seed(seed)
     params = random_gaussians(n, 3, g, depth=depth)
     perm = torch.randperm(n, generator=g)
+    # Equal float32 depths are blended in id order, which a permutation changes: the property holds
+    # for distinct depths only (about 1 example in 700 draws a tie, e.g. seed 46102548, n 89).
+    assume(project_gaussians(*params[:4], pinhole(w, h)).depths.unique().numel() == n)
     a = rasterize(*params, pinhole(w, h), return_ids=True)
     b = rasterize(*[t[perm] for t in params], pinhole(w, h), return_ids=True)
     torch.testing.assert_close(a.channels, b.channels, atol=1e-6, rtol=1e-5)
