@@ -199,16 +199,52 @@ def test_densify_seeds_only_where_the_colour_is_wrong(synth_scene):
     assert mapper.optim.m["means"].shape[0] == len(mapper.gaussians)
 
 
-@pytest.mark.parametrize("tol, expect", [(0.0, "ceiling"), (0.99, "two windows")])
-def test_keyframe_iterations_stop_on_convergence(synth_scene, tol, expect):
+@pytest.mark.parametrize("tol, share, expect", [(0.0, 0.0, 20), (0.99, 0.0, 6), (0.0, 0.5, 20), (0.99, 0.5, 16)])
+def test_keyframe_iterations_stop_on_convergence(synth_scene, tol, share, expect):
     """converge_tol 0: every keyframe runs iters_per_keyframe; a tolerance no loss drop can meet
-    stops each keyframe after two windows (the floor)."""
-    cfg = MapConfig(**{**SMALL, "iters_per_keyframe": 20, "converge_tol": tol, "converge_window": 3})
+    stops each keyframe after two windows (the floor) of its full-resolution iterations: the
+    coarse share (10 of 20) always runs."""
+    cfg = MapConfig(**{**SMALL, "iters_per_keyframe": 20, "converge_tol": tol, "converge_window": 3,
+                       "coarse_share": share, "coarse_min_width": 80})
     mapper = Mapper(cfg)
     for f in synth_scene.train[:4]:
         mapper.add_frame(*frame_args(f))
     per_kf = mapper.stats()["keyframe_iters"] / len(mapper.keyframes)
-    assert per_kf == (20 if expect == "ceiling" else 6), mapper.stats()
+    assert per_kf == expect, mapper.stats()
+
+
+def test_keyframe_at_scale(mapped):
+    """The coarse level of a keyframe: half the size, intrinsics of the resized image, area-averaged
+    colour, edge-aware depth; cached, and scale 1 is the keyframe itself."""
+    kf = mapped.keyframes[0]
+    w, h = kf.size
+    assert w * 0.5 < mapped.cfg.coarse_min_width and not kf._scaled  # 80 px: too narrow, never made
+    half = kf.at_scale(0.5)
+    assert half.size == (w // 2, h // 2) and half is kf.at_scale(0.5) and kf.at_scale(1.0) is kf
+    assert half.K[0, 0] == pytest.approx(kf.K[0, 0] / 2) and half.K[0, 2] == pytest.approx((kf.K[0, 2] + 0.5) / 2 - 0.5)
+    torch.testing.assert_close(half.rgb, kf.rgb.reshape(h // 2, 2, w // 2, 2, 3).mean((1, 3)), atol=1e-5, rtol=0)
+    d = kf.depth.reshape(h // 2, 2, w // 2, 2).permute(0, 2, 1, 3).reshape(h // 2, w // 2, 4)
+    flat = (d > 0).all(-1) & (d.amax(-1) - d.amin(-1) < 1e-3)          # four valid, equal-ish depths
+    torch.testing.assert_close(half.depth[flat], d[flat].mean(-1), atol=1e-5, rtol=0)
+    assert bool((half.depth[(d == 0).all(-1)] == 0).all())              # no depth in, none out
+    # the coarse view renders the map where the full one does (same pose, same camera geometry)
+    full = mapped.render(kf.K, kf.cam_to_world, w, h)
+    coarse = mapped.render(half.K, half.cam_to_world, w // 2, h // 2)
+    err = (coarse.depth - half.depth).abs()[(half.depth > 0) & (coarse.alpha > 0.5)]
+    assert float(err.median()) < 0.01 and float((full.alpha > 0.5).float().mean()) > 0.5
+
+
+def test_coarse_to_fine_matches_full_resolution_quality(synth_scene):
+    """Two thirds of the keyframe iterations at half resolution: the held-out views are as good as
+    with all of them at full resolution (within 0.5 dB; the same frames, budget and seed)."""
+    q = {}
+    for share in (0.0, 0.67):
+        mapper = Mapper(MapConfig(**{**SMALL, "coarse_share": share, "coarse_min_width": 80}))
+        stream_frames(mapper, synth_scene.train, progress=False)
+        mapper.refine(20 * len(mapper.keyframes))
+        q[share] = evaluate_views(mapper, synth_scene.test)
+    assert q[0.67]["psnr_valid_depth"] > q[0.0]["psnr_valid_depth"] - 0.5, q
+    assert q[0.67]["depth_abs_error_median_m"] < 0.01, q
 
 
 def test_final_refinement_stops_on_convergence(synth_scene):

@@ -52,6 +52,9 @@ def test_tiny_report_end_to_end(tiny_scene, tmp_path, capfd):
             nums = _numbers(t)
             assert nums, (name, t["title"])
             assert all(math.isfinite(v) for v in nums), (name, t["title"], t["rows"])
+    sav = rep["sections"]["savings"]["data"]
+    names = [r["saving"] for r in sav["mapping"] + sav["grounding"]]
+    assert any(n.startswith("coarse-to-fine") for n in names) and any("default supervision" in n for n in names), names
     assert rep["sections"]["stability"]["data"]["counts"]["passed"] >= 1
     assert rep["sections"]["stability"]["data"]["counts"]["failed"] == 0
     lat = rep["sections"]["latency"]["data"]["rows"]

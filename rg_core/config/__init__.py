@@ -85,6 +85,14 @@ class MapConfig:
     """Working image width: frames are resized to it (aspect kept) for mapping."""
     iters_per_keyframe: int = 15
     """Optimisation iterations after each keyframe (the run-time budget; see bench_mapping.py)."""
+    coarse_share: Annotated[float, Interval(ge=0.0, le=1.0)] = 0.67
+    """The first share of each keyframe's iterations runs at coarse_scale of the working resolution:
+    a step there costs ~1/2.5 and settles geometry and colour; the rest add the detail (0: off)."""
+    coarse_scale: Annotated[float, Interval(gt=0.0, le=1.0)] = 0.5
+    """Image scale of those coarse iterations (colour area-averaged, depth by downscale_depth)."""
+    coarse_min_width: Annotated[int, Interval(ge=1)] = 160
+    """... used only where the coarse image stays at least this wide: below it, objects of 10-20 px
+    shrink to a few pixels (a 160 px map's field then separated them worse)."""
     converge_tol: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.0
     """> 0: a keyframe's iterations stop once the loss's mean over the last converge_window iterations
     fell by less than this fraction of the window before's (iters_per_keyframe is then the ceiling)."""

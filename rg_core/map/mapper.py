@@ -2,8 +2,9 @@
 
 Per frame: render the map from the frame's pose; pixels the map does not explain (low alpha or
 depth error) decide whether the frame is a keyframe; a keyframe seeds Gaussians only there and is
-optimised with a window of keyframes for a fixed iteration budget; then transparent, oversized or
-broken Gaussians are pruned and the map is kept under `max_gaussians`.
+optimised with a window of keyframes for an iteration budget, its first iterations at half resolution
+(coarse to fine); then transparent, oversized or broken Gaussians are pruned and the map is kept under
+`max_gaussians`.
 """
 from __future__ import annotations
 
@@ -11,12 +12,14 @@ import logging
 import time
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 import torch
 
 from ..config import MapConfig
+from ..geometry.conventions import scale_intrinsics
 from ..render import Camera, RenderOutput, rasterize
-from .frames import PreparedFrame, prepare_frame
+from .frames import PreparedFrame, downscale_depth, prepare_frame
 from .gaussians import PARAMS, GaussianModel, ResizableAdam
 
 log = logging.getLogger(__name__)
@@ -32,10 +35,25 @@ class Keyframe:
     K: np.ndarray              # [3, 3] at the working resolution
     rgb: torch.Tensor          # [h, w, 3] float32 in [0, 1]
     depth: torch.Tensor        # [h, w] float32 metres, 0 = invalid
+    _scaled: dict = field(default_factory=dict, repr=False, compare=False)  # at_scale's cache
 
     @property
     def size(self) -> tuple[int, int]:
         return self.rgb.shape[1], self.rgb.shape[0]
+
+    def at_scale(self, scale: float) -> "Keyframe":
+        """This keyframe with its images resized by `scale` (cached; 1: itself): colour averaged over
+        the area, depth with downscale_depth (blocks across an edge invalid), K rescaled."""
+        if scale >= 1.0:
+            return self
+        if scale not in self._scaled:
+            w, h = self.size
+            sw, sh = max(1, round(w * scale)), max(1, round(h * scale))
+            rgb = cv2.resize(self.rgb.numpy(), (sw, sh), interpolation=cv2.INTER_AREA)
+            depth = downscale_depth(self.depth.numpy(), sw, sh)
+            self._scaled[scale] = Keyframe(self.index, self.stamp, self.cam_to_world, scale_intrinsics(self.K, sw / w, sh / h),
+                                           torch.from_numpy(rgb), torch.from_numpy(depth))
+        return self._scaled[scale]
 
 
 @dataclass
@@ -254,17 +272,22 @@ class Mapper:
         return self.keyframes[int(torch.randint(0, n, (1,), generator=self._rng))]
 
     def _optimise(self, iters: int, converge: bool = False) -> int:
-        """Up to `iters` steps over sampled keyframes; with `converge` and cfg.converge_tol > 0 they
-        stop once the windowed loss stops falling (see MapConfig). Returns the steps run."""
+        """Up to `iters` steps over sampled keyframes, the first coarse_share of them at coarse_scale;
+        with `converge` and cfg.converge_tol > 0 the full-resolution ones stop once their windowed loss
+        stops falling (see MapConfig). Returns the steps run."""
         c = self.cfg
+        coarse = round(c.coarse_share * iters)
+        for _ in range(coarse):
+            kf = self._sample_keyframe()
+            self._step(kf.at_scale(c.coarse_scale) if kf.size[0] * c.coarse_scale >= c.coarse_min_width else kf)
         win, losses = c.converge_window, []
-        for _ in range(iters):
+        for _ in range(iters - coarse):
             losses.append(self._step(self._sample_keyframe()))
             if converge and c.converge_tol > 0 and len(losses) >= 2 * win:
                 prev, last = sum(losses[-2 * win:-win]) / win, sum(losses[-win:]) / win
                 if prev - last < c.converge_tol * prev:
                     break
-        return len(losses)
+        return coarse + len(losses)
 
     def _step(self, kf: Keyframe) -> float:
         """One optimisation step on one keyframe; returns its loss."""

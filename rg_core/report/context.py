@@ -63,12 +63,13 @@ class Context:
             self.cache["reasoner"] = TextReasoner()
         return self.cache["reasoner"]
 
-    def grounder(self, mapper: Mapper, seconds: float, cfg: RGConfig | None = None):
-        """A fresh field with oracle supervision, trained `seconds` -> (Grounder, train report)."""
+    def grounder(self, mapper: Mapper, seconds: float, cfg: RGConfig | None = None, supervision: str = "oracle"):
+        """A fresh field with `supervision` (oracle unless named), trained `seconds` -> (Grounder, train report)."""
         from ..grounding.build import build_grounder
 
         mapper.field = None  # a fresh field, not the one a previous grounder trained
-        g, rep = build_grounder(self.scene, cfg or self.cfg, "oracle", seconds, mapper, progress=self.progress,
+        mapper.supervision = None
+        g, rep = build_grounder(self.scene, cfg or self.cfg, supervision, seconds, mapper, progress=self.progress,
                                 reasoner=self.reasoner())
         return g, rep
 

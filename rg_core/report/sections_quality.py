@@ -182,6 +182,20 @@ def _field_stop_saving(ctx, mapper) -> dict:
                        on, off, "s", ("explicit_visible", "explicit_amodal", "implicit_visible"))
 
 
+def _views_saving(ctx, mapper) -> dict:
+    """Default supervision embedding each object in at most models.views_per_object views against
+    every mask: supervision seconds and mIoU with default supervision (fields trained alike)."""
+    rows = {}
+    for vpo in (ctx.cfg.models.views_per_object, 0):
+        g, rep = ctx.grounder(mapper, ctx.b.savings_field_seconds, with_section(ctx.cfg, "models", views_per_object=vpo),
+                              supervision="default")
+        rows[vpo] = {**_ground_row(0, 0, ctx.evaluate(g)), "s": rep["supervision"]["seconds"]}
+    mapper.supervision = mapper.field = None  # later rows supervise with the oracle again
+    return _saving_row(f"embed each object in {ctx.cfg.models.views_per_object} views (default supervision)",
+                       "views_per_object=0 (every mask)", rows[ctx.cfg.models.views_per_object], rows[0], "s",
+                       ("explicit_visible", "explicit_amodal", "implicit_visible"))
+
+
 def savings(ctx) -> dict:
     """Each saving of the pipeline against turning it off, same scene, same run."""
     _, base = ctx.base()
@@ -190,6 +204,7 @@ def savings(ctx) -> dict:
             ("keyframe skipping", "kf_new_fraction=-1 (every frame a keyframe)", dict(kf_new_fraction=-1.0)),
             ("seed only unexplained pixels", "SeedEverywhereMapper (seed every valid-depth block)", dict(mapper_cls=SeedEverywhereMapper)),
             ("pruning", "prune_opacity=0, prune_scale=1e9", dict(prune_opacity=0.0, prune_scale=1e9)),
+            ("coarse-to-fine keyframe iterations", "coarse_share=0 (all at full resolution)", dict(coarse_share=0.0)),
             ("final refinement stop test", "refine_tol=0 (all final_iters)", dict(refine_tol=0.0))):
         _, off = ctx.map_run(("off", name), **kw)
         mrows.append(_saving_row(name, off_by, base, off, "seconds", ("psnr", "depth_err_mm", "gaussians")))
@@ -232,6 +247,7 @@ def savings(ctx) -> dict:
         grows.append(_saving_row(f"train the field at {ctx.cfg.field.train_width} px", f"train_width={full_w}",
                                  a, b, "s", ("explicit_visible", "explicit_amodal", "implicit_visible")))
     grows.append(_field_stop_saving(ctx, g.mapper))
+    grows.append(_views_saving(ctx, g.mapper))
     mcols = ("saving", "turned off by", "seconds on", "seconds off", "time saved s", "time saved %", "psnr change",
              "depth_err_mm change", "gaussians on", "gaussians off")
     gcols = ("saving", "turned off by", "seconds on", "seconds off", "time saved s", "time saved %",
@@ -239,8 +255,8 @@ def savings(ctx) -> dict:
     return {"text": [f"Mapping savings: total mapping seconds against the default map ({base['seconds']:.1f} s); "
                      "error change = on - off (PSNR dB, depth mm: negative depth change = saving is more accurate).",
                      "Grounding savings: seconds per query (clustering), reasoning seconds per query (reasoner), "
-                     f"seconds per field step (train width; field trained {ctx.b.savings_field_seconds:g} s) or "
-                     "field training seconds (stop test); mIoU in %."],
+                     f"seconds per field step (train width; field trained {ctx.b.savings_field_seconds:g} s), "
+                     "field training seconds (stop test) or supervision seconds (views per object); mIoU in %."],
             "tables": [_table("Mapping savings", mcols, [[r.get(c, "") for c in mcols] for r in mrows]),
                        _table("Grounding savings", gcols, [[r.get(c, "") for c in gcols] for r in grows])],
             "plots": [], "data": {"mapping": mrows, "grounding": grows}}
