@@ -11,6 +11,7 @@ from rg_core.map.frames import FrameError
 from rg_core.map.mapper import Mapper
 from rg_core.map.run import stream_frames
 from rg_core.map.store import MapFileError, load_map, save_map
+from rg_core.render import EPS2D, rasterize
 
 SMALL = dict(width=160, iters_per_keyframe=12)
 
@@ -227,11 +228,17 @@ def test_keyframe_at_scale(mapped):
     flat = (d > 0).all(-1) & (d.amax(-1) - d.amin(-1) < 1e-3)          # four valid, equal-ish depths
     torch.testing.assert_close(half.depth[flat], d[flat].mean(-1), atol=1e-5, rtol=0)
     assert bool((half.depth[(d == 0).all(-1)] == 0).all())              # no depth in, none out
-    # the coarse view renders the map where the full one does (same pose, same camera geometry)
+    # the coarse view renders the map where the full one does (same pose, same camera geometry), and
+    # with the low-pass filter scaled to its pixels (what coarse steps use) it is the full render
+    # averaged down; the full-resolution filter blurs it (4x the footprint area in the world)
     full = mapped.render(kf.K, kf.cam_to_world, w, h)
-    coarse = mapped.render(half.K, half.cam_to_world, w // 2, h // 2)
+    g, cam = mapped.gaussians, mapped.camera(half.K, half.cam_to_world, w // 2, h // 2)
+    coarse, blurred = (rasterize(g.means, g.scales, g.quats, g.opacities, g.colors, cam, eps2d=e) for e in (EPS2D / 4, EPS2D))
     err = (coarse.depth - half.depth).abs()[(half.depth > 0) & (coarse.alpha > 0.5)]
     assert float(err.median()) < 0.01 and float((full.alpha > 0.5).float().mean()) > 0.5
+    down = full.channels.reshape(h // 2, 2, w // 2, 2, 3).mean((1, 3))
+    e_scaled, e_full = (float((r.channels - down).abs().mean()) for r in (coarse, blurred))
+    assert e_scaled < 0.5 * e_full, (e_scaled, e_full)
 
 
 def test_coarse_to_fine_matches_full_resolution_quality(synth_scene):

@@ -18,7 +18,7 @@ import torch
 
 from ..config import MapConfig
 from ..geometry.conventions import scale_intrinsics
-from ..render import Camera, RenderOutput, rasterize
+from ..render import EPS2D, Camera, RenderOutput, rasterize
 from .frames import PreparedFrame, downscale_depth, prepare_frame
 from .gaussians import PARAMS, GaussianModel, ResizableAdam
 
@@ -279,7 +279,10 @@ class Mapper:
         coarse = round(c.coarse_share * iters)
         for _ in range(coarse):
             kf = self._sample_keyframe()
-            self._step(kf.at_scale(c.coarse_scale) if kf.size[0] * c.coarse_scale >= c.coarse_min_width else kf)
+            if kf.size[0] * c.coarse_scale >= c.coarse_min_width:
+                self._step(kf.at_scale(c.coarse_scale), c.coarse_scale)
+            else:
+                self._step(kf)
         win, losses = c.converge_window, []
         for _ in range(iters - coarse):
             losses.append(self._step(self._sample_keyframe()))
@@ -289,14 +292,17 @@ class Mapper:
                     break
         return coarse + len(losses)
 
-    def _step(self, kf: Keyframe) -> float:
-        """One optimisation step on one keyframe; returns its loss."""
+    def _step(self, kf: Keyframe, scale: float = 1.0) -> float:
+        """One optimisation step on one keyframe (at `scale` of the working resolution: Keyframe.at_scale);
+        returns its loss. The renderer's low-pass filter (EPS2D px^2) shrinks with the pixels, so it blurs
+        the same in the world at every scale (at half resolution the full filter grew the map's
+        Gaussians' footprints fourfold and cost 2.5 points of grounding mIoU on a held-out scene)."""
         g, c = self.gaussians, self.cfg
         w, h = kf.size
         params = {k: v.detach().requires_grad_(True) for k, v in g.tensors().items()}
         cam = self.camera(kf.K, kf.cam_to_world, w, h)
         out = rasterize(params["means"], torch.exp(params["log_scales"]), params["quats"],
-                        torch.sigmoid(params["opacity_logits"]), params["colors"], cam)
+                        torch.sigmoid(params["opacity_logits"]), params["colors"], cam, eps2d=EPS2D * scale * scale)
         valid = kf.depth > 0
         nv = valid.sum().clamp(min=1)
         # Colour: the whole image against the render composited over the learnt background

@@ -13,7 +13,7 @@ from pathlib import Path
 import torch
 
 from .camera import Camera
-from .projection import Projected
+from .projection import EPS2D, Projected
 
 # Tests set this: outputs start as NaN, so any element a kernel forgets to write shows.
 POISON = False
@@ -191,7 +191,7 @@ class _ProjectCPU(torch.autograd.Function):
         return gm, gs, gq, go, None, None
 
 
-def project_fast(means, scales, quats, opacities, camera: Camera, eps2d: float = 0.3) -> Projected:
+def project_fast(means, scales, quats, opacities, camera: Camera, eps2d: float = EPS2D) -> Projected:
     """C++ twin of projection.project_gaussians (same outputs and gradients)."""
     m2, cn, d, o, r = _ProjectCPU.apply(means.float(), scales.float(), quats.float(), opacities.float(), camera, eps2d)
     return Projected(means2d=m2, conics=cn, depths=d, opacities=o, radii=r)

@@ -15,6 +15,7 @@ from .camera import Camera
 ALPHA_MIN = 1.0 / 255.0   # 3DGS: contributions below this are skipped
 ALPHA_MAX = 0.99          # 3DGS: keeps 1 - alpha >= 0.01 so the backward pass can divide by it
 T_MIN = 1e-4              # 3DGS: a pixel stops compositing once transmittance would fall below this
+EPS2D = 0.3  # px^2 added to each projected covariance: a low-pass filter at the image's pixel size
 
 
 @dataclass
@@ -52,7 +53,7 @@ def covariance_3d(scales: torch.Tensor, quats: torch.Tensor) -> torch.Tensor:
 
 
 def project_gaussians(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor,
-                      opacities: torch.Tensor, camera: Camera, eps2d: float = 0.3) -> Projected:
+                      opacities: torch.Tensor, camera: Camera, eps2d: float = EPS2D) -> Projected:
     """Project Gaussians into `camera`. means [N, 3], scales [N, 3], quats [N, 4], opacities [N]."""
     N = means.shape[0]
     assert means.shape == (N, 3) and scales.shape == (N, 3), (means.shape, scales.shape)

@@ -11,7 +11,7 @@ import torch
 
 from . import fast_cpu
 from .camera import Camera
-from .projection import project_gaussians
+from .projection import EPS2D, project_gaussians
 from .reference import rasterize_reference
 from .types import RenderOutput
 
@@ -38,7 +38,7 @@ def _select(subset: torch.Tensor | None, n: int) -> torch.Tensor | None:
 def rasterize(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor, opacities: torch.Tensor,
               channels: torch.Tensor, camera: Camera, *, subset: torch.Tensor | None = None,
               background: torch.Tensor | None = None, return_ids: bool = False, backend: str = "auto",
-              tile: int = 16, eps2d: float = 0.3) -> RenderOutput:
+              tile: int = 16, eps2d: float = EPS2D) -> RenderOutput:
     """Render Gaussians into `camera` with front-to-back alpha compositing.
 
     means [N, 3] (world, m), scales [N, 3] (std devs, m), quats [N, 4] (w, x, y, z; any norm),
