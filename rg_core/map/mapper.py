@@ -293,10 +293,9 @@ class Mapper:
         return coarse + len(losses)
 
     def _step(self, kf: Keyframe, scale: float = 1.0) -> float:
-        """One optimisation step on one keyframe (at `scale` of the working resolution: Keyframe.at_scale);
-        returns its loss. The renderer's low-pass filter (EPS2D px^2) shrinks with the pixels, so it blurs
-        the same in the world at every scale (at half resolution the full filter grew the map's
-        Gaussians' footprints fourfold and cost 2.5 points of grounding mIoU on a held-out scene)."""
+        """One optimisation step on one keyframe at `scale` of the working resolution (Keyframe.at_scale);
+        returns its loss. The renderer's low-pass filter (EPS2D px^2) shrinks with the pixel area, so it
+        blurs the same in the world at every scale (else coarse steps grow the Gaussians' footprints)."""
         g, c = self.gaussians, self.cfg
         w, h = kf.size
         params = {k: v.detach().requires_grad_(True) for k, v in g.tensors().items()}
