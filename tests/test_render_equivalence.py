@@ -87,6 +87,24 @@ def test_fast_matches_reference_forward_and_gradients(n, w, h, c, seed):
         assert torch.isfinite(a).all()
 
 
+def test_colour_only_backward_matches_the_full_one():
+    """Fixed Gaussians (a feature render): the kernel skips the shape terms; the colour gradient is the
+    full backward's, and the reference's."""
+    g = torch.Generator().manual_seed(fresh_seed())
+    params = random_gaussians(1500, 33, g)
+    cam = pinhole(48, 40)
+    w = torch.randn(40, 48, 33, generator=g)
+    grads = {}
+    for name, backend, fixed in (("full", "cpu", False), ("colour", "cpu", True), ("reference", "reference", True)):
+        ps = [p.detach().clone().requires_grad_(not fixed) for p in params[:4]] + [params[4].clone().requires_grad_(True)]
+        out = rasterize(*ps, cam, backend=backend)
+        ((out.channels * w).sum() + out.depth.sum()).backward()
+        assert fixed == all(p.grad is None for p in ps[:4])
+        grads[name] = ps[4].grad
+    torch.testing.assert_close(grads["colour"], grads["full"], atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(grads["colour"], grads["reference"], atol=1e-5, rtol=1e-4)
+
+
 def test_fast_matches_reference_with_tiles_of_8_and_background():
     g = torch.Generator().manual_seed(fresh_seed())
     params = random_gaussians(800, 4, g)

@@ -38,7 +38,7 @@ _SIGNATURES = {
     "rg_rasterize_forward": (None, [_f32p, _f32p, _f32p, _f32p, _i64, _i64, _int, _int, _int, _i64p, _i32p,
                                     _f32p, _f32p, _i32p, _i32p, _int]),
     "rg_rasterize_backward": (None, [_f32p, _f32p, _f32p, _f32p, _i64, _i64, _int, _int, _int, _i64p, _i32p,
-                                     _f32p, _i32p, _f32p, _f32p, _f32p, _int]),
+                                     _f32p, _i32p, _f32p, _f32p, _f32p, _int, _int]),
 }
 
 
@@ -149,9 +149,12 @@ class _RasterizeCPU(torch.autograd.Function):
             _arr(grad_alpha, torch.float32, (height, width), "grad_alpha")
         # dL/d(alpha) = -dL/d(t_final): the kernel takes the alpha gradient as is
         grads = _empty(n, 6 + C)
+        geometry = any(ctx.needs_input_grad[:3])  # a feature render of fixed Gaussians: colour only
         _require().rg_rasterize_backward(_p(m2), _p(cn), _p(op), _p(col), n, C, width, height, tile,
                                          _p(offsets), _p(gids), _p(t_final), _p(n_contrib), _p(g_out),
-                                         _p(g_alpha), _p(grads), _threads())
+                                         _p(g_alpha), _p(grads), int(geometry), _threads())
+        if not geometry:
+            return None, None, None, grads[:, 6:], None, None, None, None, None
         return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:], None, None, None, None, None
 
 

@@ -292,7 +292,9 @@ void forward_tiles(const float* m2, const float* cn, const float* op, const floa
   }
 }
 
-// Per tile, back to front: the gradient of each list entry into its row of ent [M, 6 + C].
+// Per tile, back to front: the gradient of each list entry into its row of ent [M, 6 + C]; without
+// kGeom only the colour gradient (a feature render of fixed Gaussians: no Sg, no shape terms).
+template <bool kGeom>
 void backward_tiles(const float* m2, const float* cn, const float* op, const float* col, int64_t C, int W, int H,
                     int TS, const int64_t* off, const int32_t* gid, const float* tf, const int32_t* nc,
                     const float* go, const float* ga, float* ent_p, int nthreads) {
@@ -376,6 +378,10 @@ void backward_tiles(const float* m2, const float* cn, const float* op, const flo
             const vf Tj = Tp * inv;  // transmittance in front of Gaussian j
             st(&T[p0], sel(live, Tj, Tp));
             const vf w = sel(live, alpha * Tj, zero);
+            if constexpr (!kGeom) {  // dL/dc_j = sum of w dL/dcolour, nothing else
+              for (int64_t ch = 0; ch < C; ++ch) lane_c[ch] += w * sel(live, ld(gt + ch * P + p0), zero);
+              continue;
+            }
             // gc = dL/dcolour . c_j per pixel, and dL/dc_j = sum of w dL/dcolour
             vf gc = zero;
             for (int64_t ch = 0; ch < C; ++ch) {
@@ -437,11 +443,12 @@ void rg_rasterize_forward(const float* m2, const float* cn, const float* op, con
 
 // Gradients w.r.t. means2d [N, 2], conics [N, 3], opacities [N], colors [N, C] into grads [N, 6 + C]
 // (du, dv, da, db, dc, do, dcolor x C), given dL/dcolour [H, W, C] and dL/d(accumulated alpha) [H, W].
-// Walks each pixel's list back to front.
+// Walks each pixel's list back to front. geometry = 0: the first six columns are left at 0 (no
+// gradient wanted for the Gaussians' shape, position or opacity).
 void rg_rasterize_backward(const float* m2, const float* cn, const float* op, const float* col, int64_t n,
                            int64_t C, int width, int height, int tile, const int64_t* off, const int32_t* gid,
                            const float* tf, const int32_t* nc, const float* go, const float* ga, float* tp,
-                           int nthreads) {
+                           int geometry, int nthreads) {
   const int tiles_x = (width + tile - 1) / tile, tiles_y = (height + tile - 1) / tile;
   const int64_t n_tiles = int64_t(tiles_x) * tiles_y;
   // Each tile writes the gradient of each of its list entries into its own row of `ent` [M, stride]
@@ -455,7 +462,8 @@ void rg_rasterize_backward(const float* m2, const float* cn, const float* op, co
   static thread_local std::vector<int64_t> g_off, g_ent;
   if (int64_t(ent.size()) < M * stride) ent.resize(M * stride);
   float* const ent_p = ent.data();
-  backward_tiles(m2, cn, op, col, C, width, height, tile, off, gid, tf, nc, go, ga, ent_p, nt);
+  (geometry ? backward_tiles<true> : backward_tiles<false>)(m2, cn, op, col, C, width, height, tile, off, gid, tf, nc,
+                                                              go, ga, ent_p, nt);
   // entries of each Gaussian (CSR by counting), in list order
   g_off.assign(n + 1, 0);
   g_ent.resize(M);
