@@ -90,9 +90,9 @@ def heldout_scores(field, state: Convergence) -> dict:
     c, loss, lang, inst = field.cfg, [], [], []
     for p in state.probes:
         K, tw, th, masks, scales, _, _ = field._train_view(p.kf)
-        out = field._render(field.latents, K, p.kf.cam_to_world, tw, th)
+        out = field._render(field.latents, K, p.kf.cam_to_world, tw, th, colour=False)
         targets = field.mapper.supervision.compressed(p.kf.index)
-        f, l_lang, l_in = field._view_loss(out.channels[..., 3:].reshape(-1, c.latent_dim), p.pix, masks, scales,
+        f, l_lang, l_in = field._view_loss(out.channels.reshape(-1, c.latent_dim), p.pix, masks, scales,
                                            targets, p.own, p.sampled)
         loss.append(float(c.lambda_language * l_lang + c.lambda_instance * l_in))
         members = masks[:, p.pix].T  # [P, M]

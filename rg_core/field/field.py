@@ -228,7 +228,7 @@ class FeatureField:
             weights = torch.where(held, torch.zeros(()), weights)
             targets = self.mapper.supervision.compressed(kf.index)  # [M, 64] in the current basis
             lat = self.latents.clone().requires_grad_(True)
-            out = self._render(lat, K, kf.cam_to_world, tw, th, return_ids=c.lambda_consistency > 0)
+            out = self._render(lat, K, kf.cam_to_world, tw, th, return_ids=c.lambda_consistency > 0, colour=False)
             P = min(c.rays_per_step, tw * th)
             P = min(P, int((weights > 0).sum()))
             pix = torch.multinomial(weights, P, replacement=False, generator=self._rng)
@@ -238,7 +238,7 @@ class FeatureField:
             if len(own) > 16:
                 own = own[torch.randperm(len(own), generator=self._rng)[:16]]
             sampled = [self._sample_scale(scales) for _ in range(c.scales_per_step)]
-            f, l_lang, l_in = self._view_loss(out.channels[..., 3:].reshape(-1, c.latent_dim), pix, masks, scales,
+            f, l_lang, l_in = self._view_loss(out.channels.reshape(-1, c.latent_dim), pix, masks, scales,
                                               targets, own, sampled)
             loss = c.lambda_language * l_lang + c.lambda_instance * l_in
             if c.lambda_consistency > 0 and out.ids is not None:
@@ -322,9 +322,10 @@ class FeatureField:
 
     # ---------------------------------------------------------------------------- queries
 
-    def _render(self, latents: torch.Tensor, K, c2w, w: int, h: int, return_ids: bool = False):
+    def _render(self, latents: torch.Tensor, K, c2w, w: int, h: int, return_ids: bool = False, colour: bool = True):
+        """Channels [h, w, 3 + D]: colour and latent in one call; the latent [h, w, D] alone without `colour`."""
         g = self.mapper.gaussians
-        ch = torch.cat([g.colors.detach(), latents], 1)  # [N, 3 + D]: colour and latent in one call
+        ch = torch.cat([g.colors.detach(), latents], 1) if colour else latents
         return rasterize(g.means.detach(), g.scales.detach(), g.quats.detach(), g.opacities.detach(), ch,
                          self.mapper.camera(K, c2w, w, h), return_ids=return_ids)
 
