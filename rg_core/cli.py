@@ -171,7 +171,9 @@ def cmd_ground(args, cfg) -> dict:
 
     from .models import apply_reasoner, make_text_encoder
 
-    preset = args.preset or cfg.models.preset
+    preset = cfg.models.preset = args.preset or cfg.models.preset   # its confidence model calibrates the answer
+    if args.min_confidence is not None:
+        cfg.ground.min_confidence = args.min_confidence
     if args.backend:
         cfg.reason.backend = args.backend
     else:
@@ -232,6 +234,14 @@ def cmd_eval(args, cfg) -> dict:
 
         report["eval"]["amodal_unseen"] = amodal_coverage(scene)
     report["supervision_kind"] = args.supervision
+    if args.out:
+        from .report.plots import calibration_png
+        from .grounding.confidence import load_model
+
+        model = load_model(cfg.models.preset)
+        thr = cfg.ground.min_confidence if cfg.ground.min_confidence >= 0 or model is None else model.threshold
+        report["plots"] = [calibration_png(report["eval"]["queries"], Path(args.out) / "risk_coverage.png", thr,
+                                           f"{Path(args.scene).name}, {args.supervision} supervision")]
     return report
 
 
@@ -298,6 +308,8 @@ def build_parser() -> argparse.ArgumentParser:
     cam.add_argument("--pose", help="JSON file: K, cam_to_world (OpenCV axes), width, height")
     p.add_argument("--mode", default="auto", choices=("auto", "explicit", "implicit"))
     p.add_argument("--max-results", type=_positive, default=1, help="several instances ('the cups')")
+    p.add_argument("--min-confidence", type=float, metavar="P",
+                   help="answers less likely right abstain (default: the preset's fitted threshold; 0: never)")
     p.add_argument("--backend", help="reasoning backend (text, llama_cpp, openai)")
     p.add_argument("--name", action="append", help="an object name the scene may hold (repeatable)")
     p.add_argument("--out", help="folder for PNGs: reference view, relevancy, amodal and visible masks")
@@ -318,6 +330,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--implicit", type=int, default=1, help="implicit queries per object (default 1)")
     p.add_argument("--ablation", action="store_true", help="relevancy only / + reasoning / + grouping table")
     p.add_argument("--preset", help="models of the default supervision: offline, paper, paper_cpu (default: config)")
+    p.add_argument("--out", help="folder for PNGs: risk against coverage and reliability of the confidence")
     common(p)
     p.set_defaults(func=cmd_eval)
 

@@ -83,7 +83,12 @@ class GroundingNode(TFInput, Node):
         cfg = load_config(p.rg_config or None)
         over_map = {k: v for k, v in (("width", p.map_width), ("iters_per_keyframe", p.iters_per_keyframe),
                                       ("max_gaussians", p.max_gaussians)) if v > 0}
-        cfg = dataclasses.replace(cfg, map=dataclasses.replace(cfg.map, **over_map))
+        cfg = dataclasses.replace(cfg, map=dataclasses.replace(cfg.map, **over_map),
+                                  ground=dataclasses.replace(cfg.ground, min_confidence=p.min_confidence))
+        if p.preset:
+            cfg.models.preset = p.preset     # its confidence model calibrates the answers
+        elif (p.mask_generator, p.embedder) != ("rgbd", "conse"):
+            cfg.models.preset = ""           # models of no preset: no calibrated confidence, no abstention
         mapper = None
         if p.load_map:
             from rg_core.map.store import load_map

@@ -117,6 +117,7 @@ class NodeParams:
     torch_threads: int = _p(0, "torch intra-op threads (0 = torch's default)", 0, 1024)
     max_results: int = _p(1, "objects returned when a request says max_results = 0", 1, 1000)
     max_query_chars: int = _from(GroundConfig, "max_query_chars")
+    min_confidence: float = _from(GroundConfig, "min_confidence")
     ground_timeout: float = _p(30.0, "seconds a grounding call waits for the map lock", 0.1, 3600.0)
     mask_rate: float = _p(2.0, "Hz of ~/amodal_mask and ~/visible_mask for the last grounded targets (0 = off)",
                           0.0, 100.0)

@@ -150,7 +150,11 @@ def launched(tmp_path_factory, probe):
     realsense = yaml.safe_load((REPO / "config" / "realsense.yaml").read_text())["rg_node"]["ros__parameters"]
     params = write_params(tmp / "params.yaml", "rg_node", **(realsense | dict(
         map_width=160, iters_per_keyframe=3, torch_threads=1, frame_queue_size=64, tf_wait=2.0, tf_max_gap=0.12,
-        train_slice=0.5, train_seconds_max=2.0, status_period=0.3, mask_rate=4.0, map_cloud_period=1.0)))
+        train_slice=0.5, train_seconds_max=2.0, status_period=0.3, mask_rate=4.0, map_cloud_period=1.0,
+        # the interfaces are under test, not the answer: a 2 s field over 160 px frames with the offline
+        # models is not sure of 'a box' (calibrated confidence about 0.2); 0 returns it anyway, so that
+        # markers and masks follow (abstention: test_confidence.py, test_ros_interfaces.py)
+        min_confidence=0.0)))
     log = tmp / "launch.log"
     proc = subprocess.Popen([ROS2, "launch", "rg_ros", "grounding.launch.py", "rviz:=false", f"camera:={CAMERA}",
                              f"params_file:={params}"], env=ros_env(), stdout=log.open("w"), stderr=subprocess.STDOUT,
@@ -187,6 +191,7 @@ def test_ros2_service_call_ground(launched):
     r = ros2("service", "call", "/ground", "rg_interfaces/srv/Ground", "{query: 'a box'}", timeout=180)
     out = r.stdout + r.stderr
     assert r.returncode == 0 and "rg_interfaces.srv.Ground_Response(success=True" in out, out[-3000:]
+    assert re.search(r"\bconfidence=0\.\d+", out) and "'confidence'" in out, out[-3000:]   # calibrated, and its stage
     num = r"([-0-9.e+]+|nan|inf)"
     xyz = rf"x={num}, y={num}, z={num}"
     objects = re.findall(rf"rg_interfaces\.msg\.GroundedObject\(pose=geometry_msgs\.msg\.Pose\(position="

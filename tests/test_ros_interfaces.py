@@ -81,6 +81,16 @@ def test_result_to_response_survives_serialization():
     check_response(res, result)
 
 
+def test_abstained_answer_keeps_its_best_guess():
+    """An answer below the confidence threshold: success false and why, and the best guess's objects
+    and cloud for a client that wants to look at it."""
+    result = make_result()
+    result.success, result.message = False, "not sure the answer is 'mug': confidence 0.12 < 0.46 (...)"
+    res = deserialize_message(serialize_message(cv.result_to_response(result, "map", 7.5)), Ground.Response)
+    assert not res.success and res.message.startswith("not sure") and len(res.objects) == 2
+    assert res.cloud.width == sum(len(o.points) for o in result.objects)
+
+
 def test_failed_result_has_empty_cloud():
     res = cv.result_to_response(GroundingResult(success=False, message="map is empty"), "map")
     assert not res.success and res.message == "map is empty" and len(res.objects) == 0

@@ -269,6 +269,9 @@ class GroundConfig:
     anchor_support: bool = True
     """... and of those pieces the one with the most Gaussians the reference view sees inside its mask
     (else the most relevant point's piece): one pixel's depth can lie at a thin object's rim."""
+    min_confidence: Annotated[float, Interval(ge=-1.0, le=1.0)] = -1.0
+    """Answers less likely right than this are returned unsuccessful, with the best guess (abstain);
+    -1 = the threshold fitted with the preset's confidence model, 0 = never abstain."""
     max_query_chars: Annotated[int, Interval(ge=1, le=1_000_000)] = MAX_QUERY_CHARS
     """Longer queries are rejected."""
     seed: int = 0

@@ -24,7 +24,9 @@ def _box2d_contains(mask: np.ndarray, x: int, y: int) -> bool:
 def evaluate_queries(grounder, scene, implicit_per_object: int = 1, min_visible_px: int = 20,
                      views: list | None = None, progress: bool = False, ablation: bool = False) -> dict:
     """Every explicit query and the first `implicit_per_object` implicit ones of queries.json, on
-    every test view where the object is visible (>= min_visible_px pixels)."""
+    every test view where the object is visible (>= min_visible_px pixels). Masks, boxes and
+    localization are those of the answer's groups, an abstained answer's best guess too (the
+    figures stay comparable across thresholds); abstention shows in success_rate and "confidence"."""
     from tqdm import tqdm
 
     by_id = {o.id: o for o in scene.objects}
@@ -42,7 +44,7 @@ def evaluate_queries(grounder, scene, implicit_per_object: int = 1, min_visible_
         res = grounder.ground(text, mode=kind)
         t_query = time.perf_counter() - t0
         box = 0.0
-        if res.success:
+        if res.objects:   # an abstained answer is scored by its best guess: the figures stay comparable
             ob = res.objects[0]
             box = box_iou_aabb(ob.aabb_min, ob.aabb_max, o.aabb_min, o.aabb_max)
         right_name = res.target == o.name
@@ -56,11 +58,12 @@ def evaluate_queries(grounder, scene, implicit_per_object: int = 1, min_visible_
             amodal, visible = grounder.masks(res, f.intrinsics.K, f.cam_to_world, W, H)
             t_mask = time.perf_counter() - t1
             loc = False
-            if res.success:
+            if res.objects:
                 rel, _ = grounder.relevancy_view(res.target, res.scale, f.intrinsics.K, f.cam_to_world, W, H)
                 y, x = divmod(int(rel.reshape(-1).argmax()), W)
                 loc = _box2d_contains(gt_vis, x, y)
             rows.append({"kind": kind, "query": text, "object": o.name, "view": f.index, "success": res.success,
+                         "target": res.target, "confidence": float(res.confidence), "evidence": res.evidence,
                          "target_ok": right_name, "iou_visible": iou(visible, gt_vis),
                          "iou_amodal": iou(amodal, gt_amodal), "localized": loc, "box_iou": box,
                          "seconds_query": t_query, "seconds_masks": t_mask, "timings": res.timings})
@@ -142,7 +145,87 @@ def summarise(rows: list[dict]) -> dict:
     for r in q.values():
         for k, v in r["timings"].items():
             stages.setdefault(k, []).append(v)
+    out["queries"] = per_query(rows)
+    out["confidence"] = calibration(out["queries"])
     out["seconds"] = {"per_query_median": round(float(np.median([r["seconds_query"] for r in q.values()])), 4) if q else 0.0,
                       "masks_per_view_median": round(float(np.median([r["seconds_masks"] for r in rows])), 4) if rows else 0.0,
                       "stages_median": {k: round(float(np.median(v)), 4) for k, v in stages.items()}}
     return out
+
+
+RIGHT_IOU = 0.5   # an answer is right when its target is the object and its visible masks reach this mean IoU
+
+
+def per_query(rows: list[dict]) -> list[dict]:
+    """One record per (kind, query): the answer, its confidence and evidence, and whether it is right
+    (target right and mean visible IoU over the test views >= RIGHT_IOU)."""
+    by: dict[tuple, list[dict]] = {}
+    for r in rows:
+        by.setdefault((r["kind"], r["query"], r["object"]), []).append(r)
+    out = []
+    for (kind, query, obj), rs in by.items():
+        miou = float(np.mean([r["iou_visible"] for r in rs]))
+        r0 = rs[0]
+        out.append({"kind": kind, "query": query, "object": obj, "target": r0.get("target", ""),
+                    "success": bool(r0["success"]), "answered": bool(r0.get("evidence")),
+                    "confidence": round(float(r0.get("confidence", 0.0)), 4), "miou_visible": round(100 * miou, 2),
+                    "box_iou": round(float(r0["box_iou"]), 3),
+                    "right": bool(r0["target_ok"] and miou >= RIGHT_IOU),
+                    "evidence": {k: round(float(v), 4) for k, v in (r0.get("evidence") or {}).items()}})
+    return out
+
+
+def auroc(scores: np.ndarray, labels: np.ndarray) -> float:
+    """Area under the ROC curve of `scores` for labels True against False (ties count half); nan
+    when one class is missing."""
+    s, y = np.asarray(scores, np.float64), np.asarray(labels, bool)
+    pos, neg = s[y], s[~y]
+    if not len(pos) or not len(neg):
+        return float("nan")
+    from scipy.stats import rankdata
+
+    ranks = rankdata(np.concatenate([pos, neg]))
+    return float((ranks[:len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg)))
+
+
+def expected_calibration_error(p: np.ndarray, y: np.ndarray, bins: int = 10) -> float:
+    """sum over equal-width probability bins of (share of answers) * |mean p - share right|."""
+    p, y = np.asarray(p, np.float64), np.asarray(y, np.float64)
+    if not len(p):
+        return float("nan")
+    b = np.minimum((p * bins).astype(np.int64), bins - 1)
+    return float(sum(abs(p[b == i].mean() - y[b == i].mean()) * (b == i).mean() for i in range(bins) if (b == i).any()))
+
+
+def risk_coverage(p: np.ndarray, y: np.ndarray) -> dict:
+    """Answers sorted by confidence, most sure first: coverage (share answered) and risk (share of
+    the answered that are wrong) after each one."""
+    order = np.argsort(-np.asarray(p, np.float64), kind="stable")
+    wrong = np.cumsum(~np.asarray(y, bool)[order])
+    n = np.arange(1, len(order) + 1)
+    return {"coverage": (n / max(len(order), 1)).round(4).tolist(), "risk": (wrong / n).round(4).tolist(),
+            "confidence": np.asarray(p, np.float64)[order].round(4).tolist()}
+
+
+def calibration(queries: list[dict]) -> dict:
+    """How well confidence separates right from wrong answers over one run's queries: AUROC, ECE,
+    and at the run's abstention decisions the share of all answers that are wrong yet returned as
+    success and the share of right answers still returned. Per kind and over all."""
+    def block(qs):
+        if not qs:
+            return {"answers": 0}
+        p = np.array([q["confidence"] for q in qs])
+        y = np.array([q["right"] for q in qs])
+        ok = np.array([q["success"] for q in qs])
+        return {"answers": len(qs), "right": int(y.sum()), "auroc": round(auroc(p, y), 4),
+                "ece": round(expected_calibration_error(p, y), 4),
+                "wrong_success_share": round(float((ok & ~y).mean()), 4),
+                "right_returned_share": round(float(ok[y].mean()), 4) if y.any() else float("nan"),
+                "abstained": int((~ok).sum())}
+
+    out = {k: block([q for q in queries if q["kind"] == k]) for k in ("explicit", "implicit")}
+    out["all"] = block(queries)
+    out["risk_coverage"] = risk_coverage(np.array([q["confidence"] for q in queries]),
+                                         np.array([q["right"] for q in queries], bool)) if queries else {}
+    return out
+

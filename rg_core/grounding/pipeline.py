@@ -18,7 +18,7 @@ from ..geometry.conventions import backproject
 from ..geometry.points import map_spacing
 from ..render import rasterize
 from ..util import torch_threads
-from . import stages
+from . import confidence, stages
 from .cache import MapCache
 from .carve import mask_depth_offsets, registration_border
 from .grouping import Groups, cluster_instances
@@ -327,16 +327,42 @@ class Grounder:
             res.message = (f"no Gaussian group for {r.target!r} at scale {ref.scale:.3f} m: HDBSCAN found "
                            f"{len(groups.centres)} groups and none held the most relevant pixel's feature")
             return res
-        kf, n = ref.keyframe.index, len(res.objects[0].gaussian_ids)
-        res.success, res.confidence = True, res.objects[0].confidence
+        kf, first = ref.keyframe.index, res.objects[0]
+        n = len(first.gaussian_ids)
+        sure, why = timed("confidence", self._confidence, res, r, ref, pk, found[0][1])
+        res.success = sure
+        where = "({:.2f}, {:.2f}, {:.2f})".format(*first.obb_center)
         res.message = (f"{len(res.objects)} group(s) for {r.target!r}, {n} Gaussians; reference view {kf}, "
-                       f"scale {ref.scale:.3f} m")
+                       f"scale {ref.scale:.3f} m" if sure else
+                       f"not sure the answer is {r.target!r}: {why}; best guess {n} Gaussians at {where} m")
         res.explanation = (f"{r.explanation} Reference view {kf} (mask similarity {ref.similarity:.2f}); scale "
                            f"{ref.scale:.3f} m; the most relevant pixel ({pk.px}, {pk.py}, relevancy "
-                           f"{pk.relevancy:.2f}) lies in a group of {n} Gaussians. "
-                           f"{describe(self.field.stop, self.field.steps)}.")
+                           f"{pk.relevancy:.2f}) lies in a group of {n} Gaussians. Confidence {res.confidence:.2f}"
+                           f"{'' if sure else ': not sure, ' + why}. {describe(self.field.stop, self.field.steps)}.")
         t["field_training"] = float(self.field.stop["seconds"])  # the training behind this answer (not in total)
         return res
+
+    def _confidence(self, res: GroundingResult, r, ref, pk, group_similarity: float) -> tuple[bool, str]:
+        """Fill res.confidence (P(right) from the preset's calibrated model; without one, the
+        uncalibrated product of reasoner, relevancy and group scores) and res.evidence; -> (answer
+        or abstain, why abstained)."""
+        first = res.objects[0]
+        res.evidence = confidence.evidence(self, r, ref, pk, self.vocabulary() + self.scene_names,
+                                           first.gaussian_ids, group_similarity)
+        model = confidence.load_model(self.cfg.models.preset)
+        raw = first.confidence
+        if model is None:
+            res.confidence = raw
+            return True, ""
+        p = model.probability(res.evidence)
+        for o in res.objects:
+            o.confidence = p * (o.confidence / raw if raw > 0 else 1.0)
+        res.confidence = p
+        thr = model.threshold if self.gcfg.min_confidence < 0 else self.gcfg.min_confidence
+        if p >= thr:
+            return True, ""
+        return False, (f"confidence {p:.2f} < {thr:.2f} "
+                       f"({confidence.describe(res.evidence, model.weakest(res.evidence))})")
 
     def _reason(self, query: str, mode: str):
         """The reasoner's target for the query. An LVLM sees the scene (the paper's reference view:
@@ -370,12 +396,13 @@ class Grounder:
     def masks(self, result: GroundingResult, K: np.ndarray, cam_to_world: np.ndarray, width: int,
               height: int) -> tuple[np.ndarray, np.ndarray]:
         """Amodal (the group rendered alone) and visible (the group's share of the blending weight
-        in the full render above one half) masks of a result's groups: two bool [height, width]."""
+        in the full render above one half) masks of a result's groups, also of an abstained
+        answer's best guess: two bool [height, width]."""
         g = self.mapper.gaussians
         N = len(g)
         empty = np.zeros((height, width), bool)
         ids = np.concatenate([o.gaussian_ids for o in result.objects]) if result.objects else np.zeros(0, np.int64)
-        if not result.success or not len(ids) or not N:
+        if not len(ids) or not N:
             return empty, empty.copy()
         if int(ids.max()) >= N:
             raise ValueError(f"masks: the result names Gaussian {int(ids.max())} but the map now has {N}; ground again")

@@ -29,7 +29,7 @@ class GroundedObject:
 
 @dataclass
 class GroundingResult:
-    success: bool
+    success: bool                      # False also when the answer is too unsure (objects: the best guess)
     message: str                       # why it failed, or a one-line summary
     query: str = ""
     target: str = ""                   # object name the reasoner settled on
@@ -39,9 +39,11 @@ class GroundingResult:
     timings: dict[str, float] = field(default_factory=dict)   # seconds per stage
     reference_view: int = -1           # keyframe index used as the reference view
     scale: float = 0.0                 # physical scale s* (m) the groups were formed at
+    evidence: dict[str, float] = field(default_factory=dict)   # what the confidence is made of
 
     def to_json(self) -> dict:
         return {"success": self.success, "message": self.message, "query": self.query, "target": self.target,
                 "explanation": self.explanation, "confidence": float(self.confidence),
                 "reference_view": int(self.reference_view), "scale": float(self.scale), "objects": [o.to_json() for o in self.objects],
-                "timings": {k: float(v) for k, v in self.timings.items()}}
+                "timings": {k: float(v) for k, v in self.timings.items()},
+                "evidence": {k: float(v) for k, v in self.evidence.items()}}

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 
 def line_plot(path: Path, panels: list[dict], title: str = "") -> str:
     """panels: [{"x": label, "y": label, "series": [(name, xs, ys)], "mark": [(x, y, text)],
@@ -40,3 +42,26 @@ def line_plot(path: Path, panels: list[dict], title: str = "") -> str:
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return str(path)
+
+
+def calibration_png(queries: list[dict], path, threshold: float | None = None, title: str = "") -> str:
+    """Risk against coverage (answers sorted by confidence, the threshold's point ringed) and the
+    reliability diagram (share right against mean confidence, 10 bins) of one run's queries."""
+    from ..eval.grounding import risk_coverage
+
+    p = np.array([q["confidence"] for q in queries], np.float64)
+    y = np.array([q["right"] for q in queries], bool)
+    rc = risk_coverage(p, y)
+    mark = []
+    if threshold is not None and len(p):
+        n = int((p >= threshold).sum())
+        if n:
+            mark.append((n / len(p), float((~y[p >= threshold]).mean()), f"threshold {threshold:.2f}"))
+    b = np.minimum((p * 10).astype(np.int64), 9)
+    bins = [i for i in range(10) if (b == i).any()]
+    panels = [{"x": "coverage (share of answers returned)", "y": "risk (share of returned that are wrong)",
+               "series": [("all answers", rc.get("coverage", []), rc.get("risk", []))], "mark": mark},
+              {"x": "mean confidence", "y": "share right", "series": [
+                  ("answers", [float(p[b == i].mean()) for i in bins], [float(y[b == i].mean()) for i in bins]),
+                  ("calibrated", [0.0, 1.0], [0.0, 1.0])]}]
+    return line_plot(path, panels, title)

@@ -1,0 +1,177 @@
+"""Calibrated confidence and abstention (issue 26): fit the model on some scenes, report it on others.
+
+    python benchmarks/bench_confidence.py --fit [--seeds 101 102 103 104 105 106]       # writes the model
+    python benchmarks/bench_confidence.py [--seeds 201 202 203] [--bop DIR] [--json] [--record]
+
+Every scene (`rg synth`, 30 views 320x240, 7 objects, each seed; and the BOP scene) is evaluated by
+`rg eval --implicit 3` with default and oracle supervision in fresh processes; each answered query
+gives its evidence (rg_core/grounding/confidence.py FEATURES) and whether it is right (target right
+and mean visible IoU >= 0.5). --fit fits a logistic regression on them (standardised features,
+scikit-learn, C=1) and picks the abstention threshold from their risk-coverage curve: the lowest one at
+which wrong answers returned as success are at most 8 % of all answers. It writes rg_core/perception/data/confidence_offline.json.
+Without --fit the stored model is reported on the scenes given (never the fit seeds): AUROC, ECE,
+wrong answers returned as success (share of all answers), right answers returned, abstained right
+explicit answers with oracle supervision, and the seconds a query spends on its confidence.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from rg_core.config import SynthConfig  # noqa: E402
+from rg_core.eval.grounding import calibration  # noqa: E402
+from rg_core.report.plots import calibration_png  # noqa: E402
+from rg_core.grounding.confidence import FEATURES, ConfidenceModel, load_model, model_path  # noqa: E402
+from rg_core.synth.generator import default_objects_dir, generate_scene  # noqa: E402
+from _common import add_output_flags, finish  # noqa: E402
+
+RUN = "import sys; from rg_core.cli import main; sys.exit(main(sys.argv[1:]))"
+FIT_SEEDS = (101, 102, 103, 104, 105, 106)
+MAX_WRONG = 0.08   # the threshold: the lowest at which the fit answers' wrong-returned share is at most this
+
+
+def rg_eval(scene: str, supervision: str) -> dict:
+    """`rg eval SCENE --supervision S --implicit 3 --json` in a fresh single-threaded process."""
+    env = dict(os.environ, HF_HUB_OFFLINE="1", TRANSFORMERS_OFFLINE="1", OMP_NUM_THREADS="1",
+               PYTHONPATH=str(ROOT))
+    res = subprocess.run([sys.executable, "-c", RUN, "eval", scene, "--supervision", supervision, "--implicit", "3",
+                          "--json", "--quiet"], env=env, capture_output=True, text=True, timeout=3600, cwd=ROOT)
+    if res.returncode != 0:
+        raise RuntimeError(f"rg eval failed on {scene} ({supervision}): {res.stderr[-2000:]}")
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def collect(scenes: list[tuple[str, str]], supervisions: list[str], workers: int = 2) -> list[dict]:
+    """Per-query records of every scene and supervision, tagged with both."""
+    jobs = [(name, path, sup) for name, path in scenes for sup in supervisions]
+
+    def one(job):
+        name, path, sup = job
+        d = rg_eval(path, sup)
+        print(f"{name} {sup}: {len(d['eval']['queries'])} queries, explicit visible "
+              f"{d['eval']['explicit']['miou_visible']}", file=sys.stderr)
+        return [{**q, "scene": name, "supervision": sup,
+                 "seconds_confidence": (d["eval"]["seconds"]["stages_median"].get("confidence"))}
+                for q in d["eval"]["queries"]]
+    with ThreadPoolExecutor(workers) as pool:
+        return [q for qs in pool.map(one, jobs) for q in qs]
+
+
+def make_scenes(seeds, tmp: Path, bop: str | None) -> list[tuple[str, str]]:
+    out = []
+    for seed in seeds:
+        d = tmp / f"synth_seed{seed}"
+        generate_scene(d, SynthConfig(views=30, seed=seed), default_objects_dir(), progress=False)
+        out.append((f"synth seed {seed}", str(d)))
+    if bop and Path(bop).is_dir():
+        out.append((Path(bop).name, bop))
+    return out
+
+
+def fit(queries: list[dict], preset: str, fitted_on: str) -> ConfidenceModel:
+    from sklearn.linear_model import LogisticRegression
+
+    qs = [q for q in queries if q["answered"]]
+    X = np.array([[q["evidence"].get(k, np.nan) for k in FEATURES] for q in qs], np.float64)
+    y = np.array([q["right"] for q in qs], bool)
+    mean = np.nanmean(X, 0)
+    X = np.where(np.isfinite(X), X, mean)
+    std = np.maximum(X.std(0), 1e-6)
+    lr = LogisticRegression(C=1.0, max_iter=1000).fit((X - mean) / std, y)
+    m = ConfidenceModel(preset, mean, std, lr.coef_[0], float(lr.intercept_[0]), 0.5, fitted_on)
+    p = np.array([m.probability(q["evidence"]) for q in qs])
+    m.threshold = next((t for t in np.round(np.arange(0.0, 1.0, 0.01), 2)
+                        if float(((p >= t) & ~y).mean()) <= MAX_WRONG), 0.99)
+    for q, pq in zip(qs, p):
+        q["confidence"], q["success"] = float(pq), bool(pq >= m.threshold)
+    c = calibration(qs)["all"]
+    m.metrics = {k: c[k] for k in ("answers", "right", "auroc", "ece", "wrong_success_share", "right_returned_share")}
+    return m
+
+
+def to_rows(report: dict) -> tuple[list[dict], str]:
+    rows = []
+    for r in report["blocks"]:
+        rows.append({"scenes": r["scenes"], "supervision": r["supervision"], "answers": r["answers"],
+                     "right": r["right"], "auroc": r["auroc"], "ece": r["ece"],
+                     "wrong_success_pct": round(100 * r["wrong_success_share"], 1),
+                     "right_returned_pct": round(100 * r["right_returned_share"], 1),
+                     "right_explicit_abstained": r["right_explicit_abstained"]})
+    m = report["model"]
+    return rows, (f"model fitted on {m['fitted_on']} (threshold {m['threshold']:.2f}); answers = queries of "
+                  f"rg eval --implicit 3 (explicit + 3 implicit per object); right = target right and mean visible "
+                  f"IoU >= 0.5; unanswered queries count as abstained; confidence adds "
+                  f"{1000 * report['seconds_confidence_median']:.1f} ms per query (median)")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--fit", action="store_true", help="fit and store the model (default seeds: the fit seeds)")
+    ap.add_argument("--seeds", type=int, nargs="*", help="rg synth seeds (default: 201 202 203; --fit: 101-106)")
+    ap.add_argument("--bop", default=str(ROOT.parent / "shared/data/rgbd/ycbv_0002_bop"), help="a BOP scene ('': none)")
+    ap.add_argument("--preset", default="offline")
+    ap.add_argument("--rows", help="reuse per-query records written by an earlier run (JSON) instead of evaluating")
+    ap.add_argument("--out", default="bench_out")
+    add_output_flags(ap)
+    args = ap.parse_args()
+    seeds = args.seeds if args.seeds is not None else (list(FIT_SEEDS) if args.fit else [201, 202, 203])
+    if not args.fit and set(seeds) & set(FIT_SEEDS):
+        raise SystemExit(f"seeds {sorted(set(seeds) & set(FIT_SEEDS))} are fit seeds: report on others")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if args.rows:
+        queries = json.loads(Path(args.rows).read_text())
+    else:
+        with tempfile.TemporaryDirectory() as tmp:
+            scenes = make_scenes(seeds, Path(tmp), None if args.fit else args.bop)
+            queries = collect(scenes, ["default", "oracle"])
+        (out / ("confidence_fit_queries.json" if args.fit else "confidence_queries.json")).write_text(json.dumps(queries))
+    if args.fit:
+        m = fit(queries, args.preset, "rg synth seeds " + " ".join(map(str, seeds)) + ", default and oracle supervision")
+        model_path(args.preset).write_text(json.dumps(m.to_json(), indent=1) + "\n")
+        print(json.dumps(m.to_json()["metrics"]), file=sys.stderr)
+        print(f"wrote {model_path(args.preset)} (threshold {m.threshold:.2f})", file=sys.stderr)
+        return 0
+    model = load_model(args.preset)
+    if model is None:
+        raise SystemExit(f"no confidence model for {args.preset!r}: run with --fit first")
+    if args.rows:   # records of an earlier run: score their evidence with the model stored now
+        for q in queries:
+            if q["answered"]:
+                q["confidence"] = model.probability(q["evidence"])
+                q["success"] = q["confidence"] >= model.threshold
+    report = {"model": model.to_json(), "blocks": [], "seconds_confidence_median": float(np.median(
+        [q["seconds_confidence"] for q in queries if q.get("seconds_confidence") is not None] or [0.0]))}
+    plots = []
+    for sup in ("default", "oracle"):
+        groups = {"synthetic": [q for q in queries if q["supervision"] == sup and q["scene"].startswith("synth")],
+                  "real (BOP)": [q for q in queries if q["supervision"] == sup and not q["scene"].startswith("synth")]}
+        groups["all"] = groups["synthetic"] + groups["real (BOP)"]
+        for name, qs in groups.items():
+            if not qs:
+                continue
+            c = calibration(qs)["all"]
+            right_exp = [q for q in qs if q["right"] and q["kind"] == "explicit"]
+            report["blocks"].append({"scenes": name, "supervision": sup, **c,
+                                     "right_explicit_abstained": f"{sum(not q['success'] for q in right_exp)}/{len(right_exp)}"})
+            print(f"{name} {sup}: {c}", file=sys.stderr)
+        png = out / f"confidence_{sup}.png"
+        calibration_png(groups["all"], png, model.threshold, f"held-out scenes, {sup} supervision")
+        plots.append(png)
+    return finish(args, report, "bench_confidence", to_rows, plots=plots)
+
+
+if __name__ == "__main__":
+    from rg_core.util import run_json_script
+
+    run_json_script(main)

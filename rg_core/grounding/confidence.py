@@ -1,0 +1,190 @@
+"""How likely an answer is right: the evidence a query already computed -> a probability.
+
+A logistic model over a few evidence features (`evidence`) gives P(right), where right means the
+reasoner's target is the true object and the grounded group's visible masks overlap it with
+IoU >= 0.5. It is fitted on scenes that are never the ones it is reported on
+(benchmarks/bench_confidence.py --fit) and stored per backend preset in
+rg_core/perception/data/confidence_<preset>.json with the abstention threshold chosen there from
+the risk-coverage curve. A preset without a fitted model keeps the uncalibrated score and never
+abstains (docs/confidence.md).
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .carve import MaskView, mask_votes
+from .relevancy import CANONICAL, relevancy_pca
+
+DATA = Path(__file__).resolve().parents[1] / "perception" / "data"
+BACKGROUND_SAMPLE = 2048   # Gaussians whose relevancy stands for the map's background
+AGREE_POINTS = 400         # group Gaussians projected into the other keyframes
+CLIP = 3.0                 # standardised features are clipped to this many spreads
+
+# name -> what it measures (the explanation's words); the model's input order. Counts that grow with
+# the map (how many keyframes see the group) are evidence in the result but not model inputs: they
+# would not transfer from the fit scenes to a map of another size.
+FEATURES = {
+    "mask_similarity": "best mask's similarity to the target name",
+    "name_margin": "reference mask's margin to the runner-up name",
+    "margin_gap": "reference mask's name margin short of the map's most target-specific mask",
+    "mask_share": "reference mask's share of its image",
+    "relevancy_peak": "relevancy peak",
+    "relevancy_z": "relevancy peak against the map's background",
+    "group_relevancy_z": "group's relevancy against the map's background",
+    "view_agreement": "share of the group other views see inside their mask of the target",
+    "group_similarity": "instance-feature similarity of the group to the peak",
+    "reasoner": "reasoner confidence",
+}
+
+
+@dataclass
+class ConfidenceModel:
+    """P(right) = sigmoid(intercept + coef . (x - mean) / std), x in FEATURES order."""
+
+    preset: str
+    mean: np.ndarray                 # [F]
+    std: np.ndarray                  # [F]
+    coef: np.ndarray                 # [F]
+    intercept: float
+    threshold: float                 # default abstention threshold (risk-coverage on the fit scenes)
+    fitted_on: str = ""
+    metrics: dict = field(default_factory=dict)
+
+    def _z(self, ev: dict[str, float]) -> np.ndarray:
+        """Standardised features, a missing one as the fit's mean, each clipped to +-CLIP spreads:
+        a map unlike the fit scenes must not extrapolate the linear model into certainty."""
+        x = np.array([ev.get(k, math.nan) for k in FEATURES], np.float64)
+        x = np.where(np.isfinite(x), x, self.mean)
+        return np.clip((x - self.mean) / self.std, -CLIP, CLIP)
+
+    def probability(self, ev: dict[str, float]) -> float:
+        return float(1.0 / (1.0 + math.exp(-float(np.clip(self.intercept + self.coef @ self._z(ev), -50, 50)))))
+
+    def weakest(self, ev: dict[str, float], n: int = 2) -> list[str]:
+        """The features that pull the probability down most (most negative contribution)."""
+        contrib = self.coef * self._z(ev)
+        names = list(FEATURES)
+        return [names[i] for i in np.argsort(contrib)[:n] if contrib[i] < 0]
+
+    def to_json(self) -> dict:
+        return {"preset": self.preset, "features": list(FEATURES), "mean": self.mean.tolist(),
+                "std": self.std.tolist(), "coef": self.coef.tolist(), "intercept": self.intercept,
+                "threshold": self.threshold, "fitted_on": self.fitted_on, "metrics": self.metrics}
+
+    @staticmethod
+    def from_json(d: dict) -> "ConfidenceModel":
+        if list(d.get("features", [])) != list(FEATURES):
+            raise ValueError(f"confidence model for {d.get('preset')!r} was fitted on features {d.get('features')}, "
+                             f"this code measures {list(FEATURES)}: refit with python benchmarks/bench_confidence.py --fit")
+        return ConfidenceModel(d["preset"], np.asarray(d["mean"], np.float64), np.asarray(d["std"], np.float64),
+                               np.asarray(d["coef"], np.float64), float(d["intercept"]), float(d["threshold"]),
+                               d.get("fitted_on", ""), d.get("metrics", {}))
+
+
+def model_path(preset: str) -> Path:
+    return DATA / f"confidence_{preset}.json"
+
+
+@lru_cache(maxsize=8)
+def load_model(preset: str) -> ConfidenceModel | None:
+    """The model fitted for `preset`, or None when none was fitted."""
+    p = model_path(preset)
+    return ConfidenceModel.from_json(json.loads(p.read_text(encoding="utf-8"))) if p.is_file() else None
+
+
+def _robust(x: torch.Tensor) -> tuple[float, float]:
+    """median and 1.4826 * MAD (a standard deviation for normal data), MAD floored at 1e-3."""
+    med = float(x.median())
+    return med, 1.4826 * max(float((x - med).abs().median()), 1e-3)
+
+
+def background(g, scale: float) -> torch.Tensor:
+    """PCA codes [M, k] of the language feature at `scale` of up to BACKGROUND_SAMPLE Gaussians
+    (a fixed random sample), cached with the map: the distribution a peak must stand out of."""
+    g._check_cache()
+    N = len(g.field.latents)
+
+    def make():
+        idx = np.sort(np.random.default_rng(g.gcfg.seed).choice(N, min(N, BACKGROUND_SAMPLE), replace=False))
+        with torch.no_grad():
+            return g.field.language(g.field.latents[torch.from_numpy(idx)], scale)
+    return g.cache.get("background", (round(scale, 4), N), make)
+
+
+def view_agreement(g, ref, ids: np.ndarray) -> tuple[float, int]:
+    """Over the keyframes other than the reference that see the group (>= 20 % of its sampled
+    Gaussians, carve.mask_votes' visibility test), the mean share of the seen ones inside that
+    keyframe's best mask of the target, and how many such keyframes; (nan, 0) when none sees it."""
+    if not len(ids):
+        return math.nan, 0
+    gs = g.mapper.gaussians
+    pick = ids if len(ids) <= AGREE_POINTS else ids[np.linspace(0, len(ids) - 1, AGREE_POINTS).astype(np.int64)]
+    pts = gs.means.detach()[torch.from_numpy(pick)].numpy()                          # [P, 3] world
+    sizes = gs.scales.detach()[torch.from_numpy(pick)].max(1).values.numpy()          # [P]
+    sup = g.mapper.supervision.by_keyframe
+    border = g.vote_border()
+    shares = []
+    for c in ref.candidates:
+        kf = c.keyframe
+        mask = sup[kf.index].masks[c.index]
+        if kf.index == ref.keyframe.index or mask.shape != tuple(kf.depth.shape):
+            continue
+        view = MaskView(np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64), kf.depth.numpy(), mask)
+        v = mask_votes(pts, [view], sizes, border_px=border)
+        seen = v.inside + v.outside                                                   # [P] 0 or 1
+        if seen.sum() >= 0.2 * len(pts):
+            shares.append(float(v.inside.sum() / seen.sum()))
+    return (float(np.mean(shares)) if shares else math.nan), len(shares)
+
+
+def evidence(g, reasoning, ref, pk, vocabulary: list[str], ids: np.ndarray, group_similarity: float) -> dict[str, float]:
+    """The evidence behind an answer (FEATURES): a few ms on top of the query."""
+    sset = g.mapper.supervision
+    sup = sset.by_keyframe[ref.keyframe.index]
+    others = [n for n in dict.fromkeys(vocabulary) if n != reasoning.target]
+    every = torch.nn.functional.normalize(torch.cat([s.embeddings for s in sset.by_keyframe.values()
+                                                     if len(s.embeddings)]).float(), dim=-1)       # [M, D]
+    margins = every @ ref.target - ((every @ g.encode(others).T).max(-1).values if others else -1.0)  # [M]
+    emb = torch.nn.functional.normalize(sup.embeddings[ref.mask_index].float(), dim=-1)           # [D]
+    runner_up = float((g.encode(others) @ emb).max()) if others else -1.0
+    name_margin = float(emb @ ref.target) - runner_up
+    pca = g.mapper.supervision.pca.pca
+    texts = (g.encode([reasoning.target])[0], g.encode(list(CANONICAL)))
+    bg = relevancy_pca(background(g, ref.scale), pca.components, pca.mean, *texts)             # [M]
+    med, spread = _robust(bg)
+    with torch.no_grad():
+        z = g.field.language(g.field.latents[torch.from_numpy(np.asarray(ids, np.int64))], ref.scale)
+    group_rel = float(relevancy_pca(z, pca.components, pca.mean, *texts).mean()) if len(ids) else med
+    agree, seen = view_agreement(g, ref, ids)
+    return {"mask_similarity": float(ref.similarity), "name_margin": name_margin,
+            "margin_gap": name_margin - float(margins.max()), "mask_share": float(ref.mask.float().mean()),
+            "relevancy_peak": float(pk.relevancy), "relevancy_z": (float(pk.relevancy) - med) / spread,
+            "group_relevancy_z": (group_rel - med) / spread, "view_agreement": agree, "views_seen": float(seen),
+            "group_similarity": float(group_similarity), "reasoner": float(reasoning.confidence),
+            "background_median": med, "background_spread": spread}
+
+
+def describe(ev: dict[str, float], names: list[str]) -> str:
+    """Words and figures for the named evidence ("relevancy peak 0.483 against the map's 0.470 +- 0.010")."""
+    out = []
+    for n in names:
+        v = ev.get(n, math.nan)
+        if n in ("relevancy_z", "relevancy_peak"):
+            out.append(f"relevancy peak {ev['relevancy_peak']:.3f} against the map's {ev['background_median']:.3f} "
+                       f"+- {ev['background_spread']:.3f}")
+        elif n == "group_relevancy_z":
+            out.append(f"the group's relevancy stands {v:.1f} spreads above the map's")
+        elif n in ("view_agreement", "views_seen"):
+            out.append("no other view sees the group" if not math.isfinite(ev["view_agreement"]) else
+                       f"{int(ev['views_seen'])} other views see the group, {100 * ev['view_agreement']:.0f} % of it "
+                       f"inside their mask of the target")
+        else:
+            out.append(f"{FEATURES[n]} {v:.2f}")
+    return "; ".join(dict.fromkeys(out))
