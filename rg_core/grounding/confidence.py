@@ -68,8 +68,9 @@ class ConfidenceModel:
         return float(1.0 / (1.0 + math.exp(-float(np.clip(self.intercept + self.coef @ self._z(ev), -50, 50)))))
 
     def weakest(self, ev: dict[str, float], n: int = 2) -> list[str]:
-        """The features that pull the probability down most (most negative contribution)."""
-        contrib = self.coef * self._z(ev)
+        """The features that pull the probability down most: those the model reads "more is better"
+        (positive weight) that lie below the fit's mean, the largest pull first."""
+        contrib = np.where(self.coef > 0, self.coef * self._z(ev), 0.0)
         names = list(FEATURES)
         return [names[i] for i in np.argsort(contrib)[:n] if contrib[i] < 0]
 
