@@ -165,7 +165,8 @@ def _camera_from_args(args, grounder, result):
     return kf.K, kf.cam_to_world, kf.size[0], kf.size[1]
 
 
-def cmd_ground(args, cfg) -> dict:
+def _grounder_from_args(args, cfg):
+    """The Grounder over args.map with the models of args.preset (rg ground, rg graph)."""
     from .grounding.pipeline import Grounder
     from .map.store import load_map
 
@@ -185,7 +186,13 @@ def cmd_ground(args, cfg) -> dict:
         raise ValueError(f"{args.map}: the map has no feature field; build it with rg map --supervise --train-field S")
     grounder = Grounder.from_map(mapper, cfg, text_encoder=text, scene_names=args.name or [],
                                  source=f"{args.map} (preset {preset!r})")
-    res = grounder.ground(args.query, mode=args.mode, max_results=args.max_results)
+    return grounder
+
+
+def cmd_ground(args, cfg) -> dict:
+    grounder = _grounder_from_args(args, cfg)
+    c2w = _camera_from_args(args, grounder, None)[1] if args.pose or args.view is not None else None
+    res = grounder.ground(args.query, mode=args.mode, max_results=args.max_results, cam_to_world=c2w)
     out = res.to_json()
     if res.success and (args.out or args.view is not None or args.pose):
         K, c2w, w, h = _camera_from_args(args, grounder, res)
@@ -196,6 +203,12 @@ def cmd_ground(args, cfg) -> dict:
 
             out["pictures"] = write_grounding_pngs(grounder, res, K, c2w, w, h, amodal, visible, Path(args.out))
     return out
+
+
+def cmd_graph(args, cfg) -> dict:
+    grounder = _grounder_from_args(args, cfg)
+    objs = grounder.scene_graph()
+    return {"map": args.map, "objects": [o.to_json() for o in objs]}
 
 
 def cmd_eval(args, cfg) -> dict:
@@ -304,7 +317,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("map", help="map file from rg map --supervise --train-field S")
     p.add_argument("query", help="explicit ('coffee mug') or implicit ('something to drink hot tea from')")
     cam = p.add_mutually_exclusive_group()
-    cam.add_argument("--view", type=int, help="render masks for this keyframe (stream index)")
+    cam.add_argument("--view", type=int, help="the camera: masks are rendered for this keyframe (stream index), "
+                                              "view-dependent words (left of, nearest to me) refer to it")
     cam.add_argument("--pose", help="JSON file: K, cam_to_world (OpenCV axes), width, height")
     p.add_argument("--mode", default="auto", choices=("auto", "explicit", "implicit"))
     p.add_argument("--max-results", type=_positive, default=1, help="several instances ('the cups')")
@@ -316,6 +330,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", help="offline, paper, paper_cpu: the map's embedder (+ LVLM unless --backend)")
     common(p)
     p.set_defaults(func=cmd_ground)
+
+    p = sub.add_parser("graph", help="the map's objects: names with confidence, centre, size, colour")
+    p.add_argument("map", help="map file with a feature field (rg map --supervise --train-field)")
+    p.add_argument("--name", action="append", help="an object name the scene may hold (repeatable)")
+    p.add_argument("--preset", help="offline, paper, paper_cpu: the map's embedder")
+    p.add_argument("--backend", help="reasoning backend (text, llama_cpp, openai)")
+    p.add_argument("--min-confidence", type=float, metavar="P", help="as rg ground")
+    common(p)
+    p.set_defaults(func=cmd_graph)
 
     p = sub.add_parser("eval", help="run queries.json on the test views: mIoU, localization, box IoU, timings")
     p.add_argument("scene", help="ReasoningGD or BOP scene folder (BOP: scene_camera.json + scene_gt.json)")

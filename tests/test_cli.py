@@ -46,6 +46,11 @@ def test_demo_writes_contact_sheet(tmp_path):
             assert a["objects"] and cv2.imread(a["pictures"]["figure"]) is not None
     assert any(a["success"] for a in out["answers"].values()), out["answers"]
     assert (tmp_path / "demo" / "scene.rgmap").is_file()
+    # rg graph on the demo's map: its objects with names, confidences, centres and colours
+    r = run_rg("graph", str(tmp_path / "demo" / "scene.rgmap"), "--json")
+    assert r.returncode == 0, r.stderr
+    objs = json.loads(r.stdout)["objects"]
+    assert objs and all(o["names"] and len(o["centre"]) == 3 and o["colour"] for o in objs), objs
     # The human summary (what `rg demo` prints without --json) names what a person needs.
     from rg_core.viz.summary import demo_summary
 

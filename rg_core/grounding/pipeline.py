@@ -18,7 +18,7 @@ from ..geometry.conventions import backproject
 from ..geometry.points import map_spacing
 from ..render import rasterize
 from ..util import torch_threads
-from . import confidence, stages
+from . import confidence, relations, stages
 from .cache import MapCache
 from .carve import mask_depth_offsets, registration_border
 from .grouping import Groups, cluster_instances
@@ -278,12 +278,36 @@ class Grounder:
     def _decompress(self, z: torch.Tensor) -> torch.Tensor:  # [..., k] -> [..., D]
         return self.mapper.supervision.pca.pca.inverse(z)
 
-    def ground(self, query: str, mode: str = "auto", max_results: int = 1) -> GroundingResult:
+    def ground(self, query: str, mode: str = "auto", max_results: int = 1,
+               cam_to_world: np.ndarray | None = None) -> GroundingResult:
+        """`cam_to_world` [4, 4]: the camera view-dependent words ("left of", "nearest to me") refer
+        to; None: the newest keyframe."""
         self._outer_threads = torch.get_num_threads()
         with torch_threads(self.gcfg.query_threads):
-            return self._ground(query, mode, max_results)
+            return self._ground(query, mode, max_results, cam_to_world)
 
-    def _ground(self, query: str, mode: str, max_results: int) -> GroundingResult:
+    def scene_graph(self) -> list:
+        """The map's objects (relations.build_graph over the vocabulary), cached with the map."""
+        self._check_cache()
+        names = self.vocabulary()
+        return self.cache.get("graph", tuple(names), lambda: relations.build_graph(self, names))
+
+    def _relational(self, rq, query: str, max_results: int, cam_to_world, t0: float) -> GroundingResult:
+        t = {}
+        s = time.perf_counter()
+        objs = self.scene_graph()
+        t["graph"] = time.perf_counter() - s
+        if cam_to_world is None:
+            kf = self.mapper.keyframes[-1]
+            cam_to_world, camera = kf.cam_to_world, f"keyframe {kf.index}, the newest"
+        else:
+            camera = "the query's camera"
+        res = relations.answer(rq, objs, np.asarray(cam_to_world, np.float64), camera, max_results, query)
+        t["total"] = time.perf_counter() - t0
+        res.timings = t
+        return res
+
+    def _ground(self, query: str, mode: str, max_results: int, cam_to_world=None) -> GroundingResult:
         t0 = time.perf_counter()
         bad = query_problem(query, self.gcfg.max_query_chars)
         if bad:
@@ -298,6 +322,11 @@ class Grounder:
         if not_ready:
             return GroundingResult(False, not_ready, query=query)
         self._check_cache()
+        rq = relations.parse(query) if mode != "explicit" else None
+        if rq is not None and rq.attribute_only and f"{rq.colour} {rq.target}" in self.vocabulary():
+            rq = None   # "orange cup" is a name
+        if rq is not None:   # about objects in relation to others: over the scene graph
+            return self._relational(rq, query, max_results, cam_to_world, t0)
         t: dict[str, float] = {}
         res = GroundingResult(False, "", query=query)
         res.timings = t
