@@ -1,8 +1,8 @@
 """Queries about objects in relation to others, answered over an object-level scene graph.
 
-The graph: every name of the grounder's vocabulary grounded once as an explicit query; answers
-that share most of their Gaussians are one object holding every such name with its calibrated
-confidence. Each object has its centre, boxes, size and basic colour term (perception.colour_names).
+The graph: every name of the grounder's vocabulary grounded once as an explicit query; the answers
+returned (not abstained: see confidence.py) that share most of their Gaussians are one object
+holding every such name with its calibrated confidence. Each object has its centre, boxes, size and basic colour term (perception.colour_names).
 It is cached with the map and rebuilt when the map or the field changes.
 
 The rule parser (`parse`) reads: "how many X", "the biggest / smallest / tallest X", "the X nearest
@@ -135,7 +135,9 @@ class SceneObject:
 
     @property
     def volume(self) -> float:
-        return float(np.prod(np.maximum(self.obj.obb_extent, 1e-4)))
+        """Of the axis-aligned box: the Gaussians cover only seen surfaces, and an oriented box
+        fitted to a flat visible side has almost no volume."""
+        return float(np.prod(np.maximum(np.asarray(self.obj.aabb_max) - np.asarray(self.obj.aabb_min), 1e-4)))
 
     def to_json(self) -> dict:
         return {"name": self.name, "names": [[n, round(c, 3)] for n, c in self.names], "colour": self.colour,
@@ -162,7 +164,7 @@ def build_graph(g, names: list[str]) -> list[SceneObject]:
     gs = g.mapper.gaussians
     for name in dict.fromkeys(names):
         res = g._ground(name, "explicit", 1)
-        if not res.objects:
+        if not res.success:   # absent, or not sure (below the calibrated threshold): not in the graph
             continue
         o = res.objects[0]
         ids = set(o.gaussian_ids.tolist())
@@ -179,7 +181,10 @@ def build_graph(g, names: list[str]) -> list[SceneObject]:
 
 
 def _match(objs: list[SceneObject], name: str, colour: str = "") -> list[SceneObject]:
-    out = [o for o in objs if not name or any(n == name or n.endswith(" " + name) for n, _ in o.names)]
+    """Objects with a name that is `name` or ends in it ("blue cup" for "cup"), singular or plural."""
+    name = _singular(name)
+    out = [o for o in objs if not name or any(_singular(n) == name or _singular(n).endswith(" " + name)
+                                              for n, _ in o.names)]
     if colour:
         out = [o for o in out if o.colour.split()[-1] == colour or colour in o.name.split()]
     return out
