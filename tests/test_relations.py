@@ -92,3 +92,47 @@ def test_missing_anchor_and_absent_target_say_so(grounder):
 def test_plain_names_skip_the_graph(grounder, synth_scene):
     r = grounder.ground(synth_scene.objects[0].name)
     assert "graph" not in r.timings and "reference_view" in r.timings
+
+
+def test_names_match_plurals_compounds_and_categories():
+    from rg_core.grounding.relations import SceneObject, _match
+    from rg_core.grounding.result import GroundedObject
+
+    def obj(name, colour="red"):
+        z = np.zeros(3)
+        return SceneObject([(name, 0.9)], GroundedObject(np.zeros(1, np.int64), np.zeros((1, 3), np.float32),
+                                                         np.zeros((1, 3), np.uint8), z, z, z, np.eye(3), z), colour)
+
+    objs = [obj("banana", "yellow"), obj("plum", "purple"), obj("blue cup", "blue"), obj("hammer", "grey"),
+            obj("phillips screwdriver", "yellow")]
+    names = lambda found: sorted(o.name for o in found)   # noqa: E731
+    assert names(_match(objs, "fruits")) == ["banana", "plum"]
+    assert names(_match(objs, "cup")) == ["blue cup"]
+    assert names(_match(objs, "tool")) == ["hammer", "phillips screwdriver"]
+    assert names(_match(objs, "tool", "yellow")) == ["phillips screwdriver"]
+    assert names(_match(objs, "giraffe")) == [] and len(_match(objs, "")) == 5
+
+
+def test_rg_eval_scores_relational_queries_as_implicit_queries_of_their_target(grounder, synth_scene):
+    """`rg eval --queries FILE`: a relational query listed as an implicit query of its target object
+    takes the graph path and is scored against that object."""
+    import copy
+
+    from rg_core.eval.grounding import evaluate_queries
+    from rg_core.io.scene import Query
+
+    gt = _centres(synth_scene)
+    by_name = {o.name: o for o in synth_scene.objects}
+    anchor, target = None, None
+    for a in sorted(gt):
+        d = sorted((float(np.linalg.norm(c - gt[a])), n) for n, c in gt.items() if n != a)
+        if d[1][0] - d[0][0] >= 0.03:
+            anchor, target = a, d[0][1]
+            break
+    assert anchor, "the session scene has an unambiguous nearest neighbour"
+    scene = copy.copy(synth_scene)
+    scene.queries = [Query(by_name[target].id, target, [f"the object closest to the {anchor}"])]
+    ev = evaluate_queries(grounder, scene, implicit_per_object=1)
+    imp = [q for q in ev["queries"] if q["kind"] == "implicit"]
+    assert len(imp) == 1 and imp[0]["target"] == target and ev["implicit"]["target_accuracy"] == 100.0, imp
+    assert ev["implicit"]["miou_visible"] > 0.0

@@ -180,11 +180,25 @@ def build_graph(g, names: list[str]) -> list[SceneObject]:
     return objs
 
 
+def _is_a(n: str, name: str) -> bool:
+    """`n` is a `name`: the same or ending in it ("blue cup" is a cup), singular or plural, or one of
+    its WordNet hypernyms is ("banana": edible fruit, so a fruit; "hammer": hand tool, so a tool)."""
+    from ..perception.knowledge import KnowledgeError, load_knowledge
+
+    n = _singular(n)
+    if n == name or n.endswith(" " + name):
+        return True
+    try:
+        e = load_knowledge().entry(n) or {}
+    except KnowledgeError:
+        return False
+    return any(h == name or h.endswith(" " + name) for h in e.get("hypernyms", []))
+
+
 def _match(objs: list[SceneObject], name: str, colour: str = "") -> list[SceneObject]:
-    """Objects with a name that is `name` or ends in it ("blue cup" for "cup"), singular or plural."""
+    """Objects that are a `name` (_is_a) and, when given, of that colour."""
     name = _singular(name)
-    out = [o for o in objs if not name or any(_singular(n) == name or _singular(n).endswith(" " + name)
-                                              for n, _ in o.names)]
+    out = [o for o in objs if not name or any(_is_a(n, name) for n, _ in o.names)]
     if colour:
         out = [o for o in out if o.colour.split()[-1] == colour or colour in o.name.split()]
     return out
