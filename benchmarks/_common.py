@@ -167,3 +167,17 @@ def save_figure(fig, out_png: Path, dpi: int = 110) -> None:
     out_png.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out_png, dpi=dpi)
     plt.close(fig)
+
+
+def code_worker(script: str, code: Path, args: list[str], timeout: float, name: str = "") -> dict:
+    """Run `script --worker ARGS` in a fresh process with the rg_core of checkout `code` first on its
+    path (RG_BENCH_CODE; the script puts it there) -> the JSON object its last stdout line holds."""
+    import json
+    import subprocess
+
+    env = dict(os.environ, RG_BENCH_CODE=str(code))
+    res = subprocess.run([sys.executable, script, "--worker", *args], env=env, capture_output=True, text=True,
+                         timeout=timeout)
+    if res.returncode != 0:
+        raise RuntimeError(f"{name} worker ({code}) failed: {res.stderr[-2000:]}")
+    return json.loads(res.stdout.strip().splitlines()[-1])

@@ -18,7 +18,6 @@ import dataclasses
 import json
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -32,7 +31,7 @@ from rg_core.io.captures import read_scene  # noqa: E402
 from rg_core.eval.mapping import map_scene  # noqa: E402
 from rg_core.map.run import stream_frames  # noqa: E402
 from rg_core.synth.generator import default_objects_dir, generate_scene  # noqa: E402
-from _common import add_output_flags, finish, pyplot, save_figure  # noqa: E402
+from _common import add_output_flags, code_worker, finish, pyplot, save_figure  # noqa: E402
 
 
 def to_rows(report: dict) -> tuple[list[dict], str]:
@@ -78,12 +77,7 @@ def against_baseline(base: Path, scene: str, seeds: list[int]) -> dict:
     runs = {"baseline": [], "new": []}
     for seed in seeds:
         for name, code in (("baseline", base), ("new", ROOT)):
-            env = dict(os.environ, RG_BENCH_CODE=str(code))
-            res = subprocess.run([sys.executable, __file__, "--worker", scene, "--worker-seed", str(seed)],
-                                 env=env, capture_output=True, text=True, timeout=1800)
-            if res.returncode != 0:
-                raise RuntimeError(f"{name} worker ({code}) failed: {res.stderr[-2000:]}")
-            runs[name].append(json.loads(res.stdout.strip().splitlines()[-1]))
+            runs[name].append(code_worker(__file__, code, [scene, "--worker-seed", str(seed)], 1800, name))
             r = runs[name][-1]
             print(f"{name} seed {seed}: {r['seconds']:.1f} s, PSNR {r['psnr']:.3f} dB", file=sys.stderr)
     out = {"code": str(base), "seeds": seeds, "runs": runs}

@@ -18,7 +18,6 @@ import argparse
 import json
 import os
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -30,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, os.environ.get("RG_BENCH_CODE") or str(ROOT))
 from rg_core.render import Camera, rasterize  # noqa: E402
 from rg_core.util import peak_rss_mb  # noqa: E402
-from _common import add_output_flags, finish, pyplot, save_figure  # noqa: E402
+from _common import add_output_flags, code_worker, finish, pyplot, save_figure  # noqa: E402
 
 CASES = {"a_20k_160x120": (20_000, 160, 120), "b_100k_320x240": (100_000, 320, 240)}
 
@@ -92,12 +91,7 @@ def against_baseline(base: Path, rounds: int, repeats: int) -> dict:
         runs = {"baseline": [], "new": []}
         for r in range(rounds):
             for name, code in (("baseline", base), ("new", ROOT)):
-                env = dict(os.environ, RG_BENCH_CODE=str(code))
-                res = subprocess.run([sys.executable, __file__, "--worker", label, "--repeats", str(repeats)],
-                                     env=env, capture_output=True, text=True, timeout=900)
-                if res.returncode != 0:
-                    raise RuntimeError(f"{name} worker ({code}) failed: {res.stderr[-2000:]}")
-                runs[name].append(json.loads(res.stdout.strip().splitlines()[-1]))
+                runs[name].append(code_worker(__file__, code, [label, "--repeats", str(repeats)], 900, name))
         med = {name: {k: round(statistics.median(x[k] for x in rs), 2) for k in ("forward_ms", "forward_backward_ms")}
                for name, rs in runs.items()}
         out[label] = {**med, "rounds": rounds,

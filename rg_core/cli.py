@@ -248,11 +248,10 @@ def cmd_eval(args, cfg) -> dict:
         report["eval"]["amodal_unseen"] = amodal_coverage(scene)
     report["supervision_kind"] = args.supervision
     if args.out:
+        from .grounding.confidence import load_model, threshold
         from .report.plots import calibration_png
-        from .grounding.confidence import load_model
 
-        model = load_model(cfg.models.preset)
-        thr = cfg.ground.min_confidence if cfg.ground.min_confidence >= 0 or model is None else model.threshold
+        thr = threshold(load_model(cfg.models.preset), cfg.ground.min_confidence)
         report["plots"] = [calibration_png(report["eval"]["queries"], Path(args.out) / "risk_coverage.png", thr,
                                            f"{Path(args.scene).name}, {args.supervision} supervision")]
     return report
@@ -281,6 +280,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rg", description="ReasonGrounder: 3D visual grounding, headless.")
     parser.add_argument("--config", help="YAML configuration file (see config/rg.example.yaml)")
     sub = parser.add_subparsers(dest="command", required=True)
+
+    def map_models(p):   # what _grounder_from_args reads (rg ground, rg graph)
+        p.add_argument("--min-confidence", type=float, metavar="P",
+                       help="answers less likely right abstain (default: the preset's fitted threshold; 0: never)")
+        p.add_argument("--backend", help="reasoning backend (text, llama_cpp, openai)")
+        p.add_argument("--name", action="append", help="an object name the scene may hold (repeatable)")
+        p.add_argument("--preset", help="offline, paper, paper_cpu: the map's embedder (+ LVLM unless --backend)")
 
     def common(p):
         p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
@@ -322,21 +328,14 @@ def build_parser() -> argparse.ArgumentParser:
     cam.add_argument("--pose", help="JSON file: K, cam_to_world (OpenCV axes), width, height")
     p.add_argument("--mode", default="auto", choices=("auto", "explicit", "implicit"))
     p.add_argument("--max-results", type=_positive, default=1, help="several instances ('the cups')")
-    p.add_argument("--min-confidence", type=float, metavar="P",
-                   help="answers less likely right abstain (default: the preset's fitted threshold; 0: never)")
-    p.add_argument("--backend", help="reasoning backend (text, llama_cpp, openai)")
-    p.add_argument("--name", action="append", help="an object name the scene may hold (repeatable)")
     p.add_argument("--out", help="folder for PNGs: reference view, relevancy, amodal and visible masks")
-    p.add_argument("--preset", help="offline, paper, paper_cpu: the map's embedder (+ LVLM unless --backend)")
+    map_models(p)
     common(p)
     p.set_defaults(func=cmd_ground)
 
     p = sub.add_parser("graph", help="the map's objects: names with confidence, centre, size, colour")
-    p.add_argument("map", help="map file with a feature field (rg map --supervise --train-field)")
-    p.add_argument("--name", action="append", help="an object name the scene may hold (repeatable)")
-    p.add_argument("--preset", help="offline, paper, paper_cpu: the map's embedder")
-    p.add_argument("--backend", help="reasoning backend (text, llama_cpp, openai)")
-    p.add_argument("--min-confidence", type=float, metavar="P", help="as rg ground")
+    p.add_argument("map", help="map file from rg map --supervise --train-field S")
+    map_models(p)
     common(p)
     p.set_defaults(func=cmd_graph)
 

@@ -87,8 +87,12 @@ class GroundingNode(TFInput, Node):
                                   ground=dataclasses.replace(cfg.ground, min_confidence=p.min_confidence))
         if p.preset:
             cfg.models.preset = p.preset     # its confidence model calibrates the answers
-        elif (p.mask_generator, p.embedder) != ("rgbd", "conse"):
-            cfg.models.preset = ""           # models of no preset: no calibrated confidence, no abstention
+        else:
+            from rg_core.models import perception_spec
+
+            offline = perception_spec("offline")
+            if (p.mask_generator, p.embedder) != (offline[0], offline[2]):
+                cfg.models.preset = ""       # models of no preset: no calibrated confidence, no abstention
         mapper = None
         if p.load_map:
             from rg_core.map.store import load_map

@@ -90,3 +90,16 @@ def oracle_field(synth_scene):
     finally:
         torch.set_num_threads(n)
     return field, embed
+
+
+@pytest.fixture(scope="module")
+def grounder(oracle_field, synth_scene):
+    """A Grounder over the oracle field with the text reasoner and the scene's names (one per test module:
+    a module may change its config)."""
+    from rg_core.config import RGConfig
+    from rg_core.grounding.pipeline import Grounder
+    from rg_core.perception.reasoning import TextReasoner
+
+    field, embed = oracle_field
+    return Grounder(field.mapper, field, RGConfig(), reasoner=TextReasoner(), text_encoder=embed,
+                    scene_names=[o.name for o in synth_scene.objects])

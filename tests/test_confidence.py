@@ -6,7 +6,6 @@ import math
 import numpy as np
 import pytest
 
-from rg_core.config import RGConfig
 from rg_core.eval.grounding import auroc, calibration, expected_calibration_error, risk_coverage
 from rg_core.report.plots import calibration_png
 from rg_core.grounding.confidence import FEATURES, ConfidenceModel, describe, load_model, model_path
@@ -85,16 +84,6 @@ def test_describe_gives_figures():
           "view_agreement": float("nan"), "views_seen": 0.0, "name_margin": -0.12}
     text = describe(ev, ["relevancy_z", "view_agreement", "name_margin"])
     assert "0.483 against the map's 0.470 +- 0.010" in text and "no other view" in text and "-0.12" in text
-
-
-@pytest.fixture(scope="module")
-def grounder(oracle_field, synth_scene):
-    from rg_core.grounding.pipeline import Grounder
-    from rg_core.perception.reasoning import TextReasoner
-
-    field, embed = oracle_field
-    return Grounder(field.mapper, field, RGConfig(), reasoner=TextReasoner(), text_encoder=embed,
-                    scene_names=[o.name for o in synth_scene.objects])
 
 
 def test_answers_carry_evidence_and_abstain_below_the_threshold(grounder, synth_scene):

@@ -10,15 +10,6 @@ from rg_core.grounding.boxes import box_iou_aabb
 from rg_core.grounding.pipeline import Grounder
 
 
-@pytest.fixture(scope="module")
-def grounder(oracle_field, synth_scene):
-    from rg_core.perception.reasoning import TextReasoner
-
-    field, embed = oracle_field
-    return Grounder(field.mapper, field, RGConfig(), reasoner=TextReasoner(), text_encoder=embed,
-                    scene_names=[o.name for o in synth_scene.objects])
-
-
 def test_explicit_queries_find_each_object(grounder, synth_scene):
     ious, vis = [], []
     for o in synth_scene.objects:

@@ -3,7 +3,6 @@ oracle supervision checked against the ground-truth object centres."""
 import numpy as np
 import pytest
 
-from rg_core.config import RGConfig
 from rg_core.grounding.relations import Relational, colour_term, parse
 
 
@@ -37,16 +36,6 @@ def test_colour_terms():
     assert colour_term(px([200, 30, 30])) == "red" and colour_term(px([40, 60, 200])) == "blue"
     assert colour_term(px([250, 250, 250])) == "white" and colour_term(px([0, 0, 80])) == "dark blue"
     assert colour_term(px([150, 200, 255])) == "light blue"
-
-
-@pytest.fixture(scope="module")
-def grounder(oracle_field, synth_scene):
-    from rg_core.grounding.pipeline import Grounder
-    from rg_core.perception.reasoning import TextReasoner
-
-    field, embed = oracle_field
-    return Grounder(field.mapper, field, RGConfig(), reasoner=TextReasoner(), text_encoder=embed,
-                    scene_names=[o.name for o in synth_scene.objects])
 
 
 def _centres(scene):

@@ -150,11 +150,12 @@ def evidence(g, reasoning, ref, pk, vocabulary: list[str], ids: np.ndarray, grou
     sset = g.mapper.supervision
     sup = sset.by_keyframe[ref.keyframe.index]
     others = [n for n in dict.fromkeys(vocabulary) if n != reasoning.target]
+    other = g.encode(others) if others else None                                                  # [O, D]
     every = torch.nn.functional.normalize(torch.cat([s.embeddings for s in sset.by_keyframe.values()
                                                      if len(s.embeddings)]).float(), dim=-1)       # [M, D]
-    margins = every @ ref.target - ((every @ g.encode(others).T).max(-1).values if others else -1.0)  # [M]
+    margins = every @ ref.target - ((every @ other.T).max(-1).values if others else -1.0)       # [M]
     emb = torch.nn.functional.normalize(sup.embeddings[ref.mask_index].float(), dim=-1)           # [D]
-    runner_up = float((g.encode(others) @ emb).max()) if others else -1.0
+    runner_up = float((other @ emb).max()) if others else -1.0
     name_margin = float(emb @ ref.target) - runner_up
     pca = g.mapper.supervision.pca.pca
     texts = (g.encode([reasoning.target])[0], g.encode(list(CANONICAL)))
@@ -189,3 +190,32 @@ def describe(ev: dict[str, float], names: list[str]) -> str:
         else:
             out.append(f"{FEATURES[n]} {v:.2f}")
     return "; ".join(dict.fromkeys(out))
+
+
+def threshold(model: ConfidenceModel | None, min_confidence: float) -> float | None:
+    """The abstention threshold: ground.min_confidence when >= 0, else the model's fitted one;
+    None without a model (an uncalibrated score never abstains)."""
+    if model is None:
+        return None
+    return model.threshold if min_confidence < 0 else min_confidence
+
+
+def assess(g, res, reasoning, ref, pk, group_similarity: float) -> tuple[bool, str]:
+    """Fill res.evidence and res.confidence (P(right) from the preset's model; without one, the
+    uncalibrated product of reasoner, relevancy and group scores already in the objects) and
+    scale the objects' confidences alike. -> (answer, or abstain and why)."""
+    first = res.objects[0]
+    res.evidence = evidence(g, reasoning, ref, pk, g.vocabulary(), first.gaussian_ids, group_similarity)
+    model = load_model(g.cfg.models.preset)
+    raw = first.confidence
+    thr = threshold(model, g.gcfg.min_confidence)
+    if model is None:
+        res.confidence = raw
+        return True, ""
+    p = model.probability(res.evidence)
+    for o in res.objects:
+        o.confidence = p * (o.confidence / raw if raw > 0 else 1.0)
+    res.confidence = p
+    if p >= thr:
+        return True, ""
+    return False, f"confidence {p:.2f} < {thr:.2f} ({describe(res.evidence, model.weakest(res.evidence))})"

@@ -358,7 +358,7 @@ class Grounder:
             return res
         kf, first = ref.keyframe.index, res.objects[0]
         n = len(first.gaussian_ids)
-        sure, why = timed("confidence", self._confidence, res, r, ref, pk, found[0][1])
+        sure, why = timed("confidence", confidence.assess, self, res, r, ref, pk, found[0][1])
         res.success = sure
         where = "({:.2f}, {:.2f}, {:.2f})".format(*first.obb_center)
         res.message = (f"{len(res.objects)} group(s) for {r.target!r}, {n} Gaussians; reference view {kf}, "
@@ -370,28 +370,6 @@ class Grounder:
                            f"{'' if sure else ': not sure, ' + why}. {describe(self.field.stop, self.field.steps)}.")
         t["field_training"] = float(self.field.stop["seconds"])  # the training behind this answer (not in total)
         return res
-
-    def _confidence(self, res: GroundingResult, r, ref, pk, group_similarity: float) -> tuple[bool, str]:
-        """Fill res.confidence (P(right) from the preset's calibrated model; without one, the
-        uncalibrated product of reasoner, relevancy and group scores) and res.evidence; -> (answer
-        or abstain, why abstained)."""
-        first = res.objects[0]
-        res.evidence = confidence.evidence(self, r, ref, pk, self.vocabulary() + self.scene_names,
-                                           first.gaussian_ids, group_similarity)
-        model = confidence.load_model(self.cfg.models.preset)
-        raw = first.confidence
-        if model is None:
-            res.confidence = raw
-            return True, ""
-        p = model.probability(res.evidence)
-        for o in res.objects:
-            o.confidence = p * (o.confidence / raw if raw > 0 else 1.0)
-        res.confidence = p
-        thr = model.threshold if self.gcfg.min_confidence < 0 else self.gcfg.min_confidence
-        if p >= thr:
-            return True, ""
-        return False, (f"confidence {p:.2f} < {thr:.2f} "
-                       f"({confidence.describe(res.evidence, model.weakest(res.evidence))})")
 
     def _reason(self, query: str, mode: str):
         """The reasoner's target for the query. An LVLM sees the scene (the paper's reference view:
