@@ -37,6 +37,7 @@ from _common import add_output_flags, finish  # noqa: E402
 
 RUN = "import sys; from rg_core.cli import main; sys.exit(main(sys.argv[1:]))"
 FIT_SEEDS = (101, 102, 103, 104, 105, 106)
+SUPERVISIONS = ("default", "oracle")   # one model each: their evidence lives on different scales
 MAX_WRONG = 0.08   # the threshold: the lowest at which the fit answers' wrong-returned share is at most this
 
 
@@ -78,17 +79,18 @@ def make_scenes(seeds, tmp: Path, bop: str | None) -> list[tuple[str, str]]:
     return out
 
 
-def fit(queries: list[dict], preset: str, fitted_on: str) -> ConfidenceModel:
+def fit(queries: list[dict], preset: str, supervision: str, fitted_on: str) -> ConfidenceModel:
+    """A logistic model on the answered queries of maps with `supervision`."""
     from sklearn.linear_model import LogisticRegression
 
-    qs = [q for q in queries if q["answered"]]
+    qs = [q for q in queries if q["answered"] and q["supervision"] == supervision]
     X = np.array([[q["evidence"].get(k, np.nan) for k in FEATURES] for q in qs], np.float64)
     y = np.array([q["right"] for q in qs], bool)
     mean = np.nanmean(X, 0)
     X = np.where(np.isfinite(X), X, mean)
     std = np.maximum(X.std(0), 1e-6)
     lr = LogisticRegression(C=1.0, max_iter=1000).fit((X - mean) / std, y)
-    m = ConfidenceModel(preset, mean, std, lr.coef_[0], float(lr.intercept_[0]), 0.5, fitted_on)
+    m = ConfidenceModel(preset, supervision, mean, std, lr.coef_[0], float(lr.intercept_[0]), 0.5, fitted_on)
     p = np.array([m.probability(q["evidence"]) for q in qs])
     m.threshold = next((t for t in np.round(np.arange(0.0, 1.0, 0.01), 2)
                         if float(((p >= t) & ~y).mean()) <= MAX_WRONG), 0.99)
@@ -107,8 +109,9 @@ def to_rows(report: dict) -> tuple[list[dict], str]:
                      "wrong_success_pct": round(100 * r["wrong_success_share"], 1),
                      "right_returned_pct": round(100 * r["right_returned_share"], 1),
                      "right_explicit_abstained": r["right_explicit_abstained"]})
-    m = report["model"]
-    return rows, (f"model fitted on {m['fitted_on']} (threshold {m['threshold']:.2f}); answers = queries of "
+    ms = report["models"]
+    fitted = "; ".join(f"{m['fitted_on']} (threshold {m['threshold']:.2f})" for m in ms.values())
+    return rows, (f"one model per supervision, fitted on {fitted}; answers = queries of "
                   f"rg eval --implicit 3 (explicit + 3 implicit per object); right = target right and mean visible "
                   f"IoU >= 0.5; unanswered queries count as abstained; confidence adds "
                   f"{1000 * report['seconds_confidence_median']:.1f} ms per query (median)")
@@ -134,26 +137,31 @@ def main() -> int:
     else:
         with tempfile.TemporaryDirectory() as tmp:
             scenes = make_scenes(seeds, Path(tmp), None if args.fit else args.bop)
-            queries = collect(scenes, ["default", "oracle"])
+            queries = collect(scenes, list(SUPERVISIONS))
         (out / ("confidence_fit_queries.json" if args.fit else "confidence_queries.json")).write_text(json.dumps(queries))
     if args.fit:
-        m = fit(queries, args.preset, "rg synth seeds " + " ".join(map(str, seeds)) + ", default and oracle supervision")
-        model_path(args.preset).write_text(json.dumps(m.to_json(), indent=1) + "\n")
-        print(json.dumps(m.to_json()["metrics"]), file=sys.stderr)
-        print(f"wrote {model_path(args.preset)} (threshold {m.threshold:.2f})", file=sys.stderr)
+        models = {sup: fit(queries, args.preset, sup, f"rg synth seeds {' '.join(map(str, seeds))}, {sup} supervision")
+                  for sup in SUPERVISIONS}
+        model_path(args.preset).write_text(json.dumps(
+            {"preset": args.preset, "by_supervision": {k: m.to_json() for k, m in models.items()}}, indent=1) + "\n")
+        for sup, m in models.items():
+            print(f"{sup}: {json.dumps(m.metrics)}, threshold {m.threshold:.2f}", file=sys.stderr)
+        print(f"wrote {model_path(args.preset)}", file=sys.stderr)
         return 0
-    model = load_model(args.preset)
-    if model is None:
+    models = {sup: load_model(args.preset, sup) for sup in SUPERVISIONS}
+    if models["default"] is None:
         raise SystemExit(f"no confidence model for {args.preset!r}: run with --fit first")
-    if args.rows:   # records of an earlier run: score their evidence with the model stored now
+    if args.rows:   # records of an earlier run: score their evidence with the models stored now
         for q in queries:
             if q["answered"]:
-                q["confidence"] = model.probability(q["evidence"])
-                q["success"] = q["confidence"] >= model.threshold
-    report = {"model": model.to_json(), "blocks": [], "seconds_confidence_median": float(np.median(
+                m = models[q["supervision"]]
+                q["confidence"] = m.probability(q["evidence"])
+                q["success"] = q["confidence"] >= m.threshold
+    report = {"models": {k: m.to_json() for k, m in models.items()}, "blocks": [], "seconds_confidence_median": float(np.median(
         [q["seconds_confidence"] for q in queries if q.get("seconds_confidence") is not None] or [0.0]))}
     plots = []
-    for sup in ("default", "oracle"):
+    for sup in SUPERVISIONS:
+        model = models[sup]
         groups = {"synthetic": [q for q in queries if q["supervision"] == sup and q["scene"].startswith("synth")],
                   "real (BOP)": [q for q in queries if q["supervision"] == sup and not q["scene"].startswith("synth")]}
         groups["all"] = groups["synthetic"] + groups["real (BOP)"]

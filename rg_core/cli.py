@@ -251,7 +251,7 @@ def cmd_eval(args, cfg) -> dict:
         from .grounding.confidence import load_model, threshold
         from .report.plots import calibration_png
 
-        thr = threshold(load_model(cfg.models.preset), cfg.ground.min_confidence)
+        thr = threshold(load_model(cfg.models.preset, args.supervision), cfg.ground.min_confidence)
         report["plots"] = [calibration_png(report["eval"]["queries"], Path(args.out) / "risk_coverage.png", thr,
                                            f"{Path(args.scene).name}, {args.supervision} supervision")]
     return report

@@ -47,7 +47,7 @@ def test_calibration_block_counts_wrong_answers_returned_as_success(tmp_path):
 
 def _model(coef, threshold=0.5):
     F = len(FEATURES)
-    return ConfidenceModel("test", np.zeros(F), np.ones(F), np.asarray(coef, float), 0.0, threshold)
+    return ConfidenceModel("test", "default", np.zeros(F), np.ones(F), np.asarray(coef, float), 0.0, threshold)
 
 
 def test_model_probability_weakest_and_missing_values():
@@ -77,6 +77,22 @@ def test_the_offline_preset_has_a_fitted_model():
     assert 0.0 < m.threshold < 1.0 and np.all(m.std > 0) and np.isfinite(m.coef).all()
     assert "seed" in m.fitted_on and m.metrics["auroc"] > 0.5
     assert load_model("no-such-preset") is None
+
+
+def test_one_model_per_supervision_source_and_the_map_keeps_its_source(grounder):
+    from rg_core.perception.supervision import SupervisionSet
+
+    d, o = load_model("offline", "default"), load_model("offline", "oracle")
+    assert d.supervision == "default" and o.supervision == "oracle" and not np.allclose(d.coef, o.coef)
+    assert load_model("offline", "something-else").supervision == "default"   # unknown source: the default one
+    sset = grounder.mapper.supervision                             # the session map: ground-truth masks
+    assert sset.source == "oracle"
+    assert SupervisionSet.from_state_dict(sset.state_dict()).source == "oracle"
+    old = sset.state_dict()
+    del old["source"]                                              # a map saved before sources were kept
+    assert SupervisionSet.from_state_dict(old).source == "default"
+    r = grounder.ground(grounder.scene_names[0], mode="explicit")
+    assert r.confidence == pytest.approx(o.probability(r.evidence)) != pytest.approx(d.probability(r.evidence))
 
 
 def test_describe_gives_figures():

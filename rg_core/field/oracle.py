@@ -65,7 +65,7 @@ def oracle_supervision(mapper, frames: list, objects: list, embed: Callable[[lis
     lo = np.min([o.aabb_min for o in objects], 0)
     hi = np.max([o.aabb_max for o in objects], 0)
     group_scale = object_scale(lo, hi)
-    sset = SupervisionSet(pca_dim)
+    sset = SupervisionSet(pca_dim, source="oracle")
     for kf in mapper.keyframes:
         if kf.index >= len(frames):
             raise ValueError(f"oracle_supervision: keyframe {kf.index} is beyond the {len(frames)} frames given")

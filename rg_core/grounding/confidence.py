@@ -4,9 +4,10 @@ A logistic model over a few evidence features (`evidence`) gives P(right), where
 reasoner's target is the true object and the grounded group's visible masks overlap it with
 IoU >= 0.5. It is fitted on scenes that are never the ones it is reported on
 (benchmarks/bench_confidence.py --fit) and stored per backend preset in
-rg_core/perception/data/confidence_<preset>.json with the abstention threshold chosen there from
-the risk-coverage curve. A preset without a fitted model keeps the uncalibrated score and never
-abstains (docs/confidence.md).
+rg_core/perception/data/confidence_<preset>.json, one model per supervision source of the map (the
+preset's models or ground truth: their evidence lives on different scales), each with the abstention
+threshold chosen from its risk-coverage curve. A preset without a fitted model keeps the uncalibrated
+score and never abstains (docs/confidence.md).
 """
 from __future__ import annotations
 
@@ -49,6 +50,7 @@ class ConfidenceModel:
     """P(right) = sigmoid(intercept + coef . (x - mean) / std), x in FEATURES order."""
 
     preset: str
+    supervision: str                 # the maps' supervision source it was fitted on: default | oracle
     mean: np.ndarray                 # [F]
     std: np.ndarray                  # [F]
     coef: np.ndarray                 # [F]
@@ -75,7 +77,7 @@ class ConfidenceModel:
         return [names[i] for i in np.argsort(contrib)[:n] if contrib[i] < 0]
 
     def to_json(self) -> dict:
-        return {"preset": self.preset, "features": list(FEATURES), "mean": self.mean.tolist(),
+        return {"preset": self.preset, "supervision": self.supervision, "features": list(FEATURES), "mean": self.mean.tolist(),
                 "std": self.std.tolist(), "coef": self.coef.tolist(), "intercept": self.intercept,
                 "threshold": self.threshold, "fitted_on": self.fitted_on, "metrics": self.metrics}
 
@@ -84,7 +86,8 @@ class ConfidenceModel:
         if list(d.get("features", [])) != list(FEATURES):
             raise ValueError(f"confidence model for {d.get('preset')!r} was fitted on features {d.get('features')}, "
                              f"this code measures {list(FEATURES)}: refit with python benchmarks/bench_confidence.py --fit")
-        return ConfidenceModel(d["preset"], np.asarray(d["mean"], np.float64), np.asarray(d["std"], np.float64),
+        return ConfidenceModel(d["preset"], d.get("supervision", "default"), np.asarray(d["mean"], np.float64),
+                               np.asarray(d["std"], np.float64),
                                np.asarray(d["coef"], np.float64), float(d["intercept"]), float(d["threshold"]),
                                d.get("fitted_on", ""), d.get("metrics", {}))
 
@@ -94,10 +97,19 @@ def model_path(preset: str) -> Path:
 
 
 @lru_cache(maxsize=8)
-def load_model(preset: str) -> ConfidenceModel | None:
-    """The model fitted for `preset`, or None when none was fitted."""
+def load_model(preset: str, supervision: str = "default") -> ConfidenceModel | None:
+    """The model fitted for `preset` on maps of `supervision` (default | oracle; the default one when
+    that source has none), or None when none was fitted."""
     p = model_path(preset)
-    return ConfidenceModel.from_json(json.loads(p.read_text(encoding="utf-8"))) if p.is_file() else None
+    if not p.is_file():
+        return None
+    models = json.loads(p.read_text(encoding="utf-8"))["by_supervision"]
+    return ConfidenceModel.from_json(models.get(supervision, models["default"]))
+
+
+def supervision_of(g) -> str:
+    """The supervision source of the grounder's map (maps saved before it was recorded: default)."""
+    return getattr(g.mapper.supervision, "source", "default")
 
 
 def _robust(x: torch.Tensor) -> tuple[float, float]:
@@ -206,7 +218,7 @@ def assess(g, res, reasoning, ref, pk, group_similarity: float) -> tuple[bool, s
     scale the objects' confidences alike. -> (answer, or abstain and why)."""
     first = res.objects[0]
     res.evidence = evidence(g, reasoning, ref, pk, g.vocabulary(), first.gaussian_ids, group_similarity)
-    model = load_model(g.cfg.models.preset)
+    model = load_model(g.cfg.models.preset, supervision_of(g))
     raw = first.confidence
     thr = threshold(model, g.gcfg.min_confidence)
     if model is None:

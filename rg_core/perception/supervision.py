@@ -106,8 +106,11 @@ TEXT_MODEL = "all-MiniLM-L6-v2"  # the model of SupervisionSet.text_embeddings (
 class SupervisionSet:
     """Supervision of every keyframe of a map and the PCA space of their embeddings."""
 
-    def __init__(self, pca_dim: int = 64):
+    def __init__(self, pca_dim: int = 64, source: str = "default"):
         self.by_keyframe: dict[int, KeyframeSupervision] = {}
+        # where the masks and names came from: "default" (the preset's models) or "oracle" (ground
+        # truth); answers on the two are calibrated apart (grounding.confidence).
+        self.source = source
         self.pca = IncrementalPCA(k=pca_dim)
         # MiniLM embeddings of the texts a query on this map needs besides the query itself (names,
         # canonical phrases): stored with the map so a new process need not load the text model.
@@ -141,7 +144,7 @@ class SupervisionSet:
     def state_dict(self) -> dict:
         return {"keyframes": {str(k): s.state_dict() for k, s in self.by_keyframe.items()},
                 "pca": self.pca.pca.state_dict() if self.pca.pca is not None else None, "pca_dim": self.pca.k,
-                "pca_version": self.pca.version,
+                "pca_version": self.pca.version, "source": self.source,
                 "text_embeddings": {"model": TEXT_MODEL, "texts": list(self.text_embeddings),
                                     "embeddings": torch.stack(list(self.text_embeddings.values())).float()}
                 if self.text_embeddings else None}
@@ -150,7 +153,7 @@ class SupervisionSet:
     def from_state_dict(d: dict) -> "SupervisionSet":
         from .pca import PCA
 
-        s = SupervisionSet(int(d.get("pca_dim", 64)))
+        s = SupervisionSet(int(d.get("pca_dim", 64)), str(d.get("source", "default")))
         for k, v in d["keyframes"].items():
             s.by_keyframe[int(k)] = KeyframeSupervision.from_state_dict(v)
             s.pca.raw.append(s.by_keyframe[int(k)].embeddings)
