@@ -62,3 +62,17 @@ def test_backproject_project_round_trip():
 def test_check_rigid_rejects(T, msg):
     with pytest.raises(cv.PoseError, match=msg):
         cv.check_rigid(T, "test pose")
+
+
+def test_up_direction_from_camera_poses():
+    from scipy.spatial.transform import Rotation
+
+    ring = [cv.look_at([np.cos(a), np.sin(a), 0.6], [0, 0, 0]) for a in np.linspace(0, 2 * np.pi, 8, endpoint=False)]
+    assert np.allclose(cv.up_direction(np.stack(ring)), [0, 0, 1], atol=1e-9)
+    one = cv.look_at([1.0, 0.0, 1.0], [0, 0, 0])        # one view looking down 45 degrees: its own up
+    assert np.allclose(cv.up_direction(one[None]), -one[:3, 1], atol=1e-9)
+    R = np.eye(4)
+    R[:3, :3] = Rotation.from_euler("xyz", [30, -20, 70], degrees=True).as_matrix()
+    assert np.allclose(cv.up_direction(np.stack([R @ T for T in ring])), R[:3, :3] @ [0, 0, 1], atol=1e-9)
+    with pytest.raises(ValueError, match="finite"):
+        cv.up_direction(np.full((2, 4, 4), np.nan))

@@ -19,6 +19,20 @@ from rg_core.grounding.relations import Relational, colour_term, parse
     ("the blue cup left of the bowl", Relational("cup", "blue", "left", ["bowl"])),
     ("the cup to the right of the salt and pepper", Relational("cup", relation="right", anchors=["salt and pepper"])),
     ("the red cup", Relational("cup", "red")),
+    ("how many cups are on the table", Relational("cup", relation="on", anchors=["table"], count=True)),
+    ("count the cups", Relational("cup", count=True)),
+    ("show me all the fruit next to the bowl", Relational("fruit", relation="near", anchors=["bowl"], every=True)),
+    ("the second cup from the left", Relational("cup", ordinal=2, side="left")),
+    ("the last screwdriver from the right", Relational("screwdriver", ordinal=-1, side="right")),
+    ("the leftmost object", Relational("", ordinal=1, side="left")),
+    ("whatever is on the right", Relational("", ordinal=1, side="right")),
+    ("the cup on the left of the bowl", Relational("cup", relation="left", anchors=["bowl"])),
+    ("the apple on top of the box", Relational("apple", relation="on", anchors=["box"])),
+    ("the ball under the table", Relational("ball", relation="under", anchors=["table"])),
+    ("the thing above the bowl", Relational("", relation="above", anchors=["bowl"])),
+    ("the tallest thing", Relational("", superlative="tallest")),
+    ("the highest object", Relational("", superlative="highest")),
+    ("where is the mug that is next to the laptop?", Relational("mug", relation="near", anchors=["laptop"])),
 ])
 def test_parse(query, want):
     assert parse(query) == want
@@ -26,7 +40,8 @@ def test_parse(query, want):
 
 @pytest.mark.parametrize("query", ["coffee mug", "a sturdy vessel for hot beverages", "something to drink hot tea from",
                                    "the fruit that fell on Newton's head", "a round red fruit that keeps the doctor away",
-                                   "blue", "the thing between the apple"])
+                                   "blue", "the thing between the apple", "a lamp that turns on at night",
+                                   "something to write on", "what you put on a bed to sleep on"])
 def test_plain_names_and_descriptions_are_not_relational(query):
     assert parse(query) is None
 
@@ -83,14 +98,19 @@ def test_plain_names_skip_the_graph(grounder, synth_scene):
     assert "graph" not in r.timings and "reference_view" in r.timings
 
 
-def test_names_match_plurals_compounds_and_categories():
-    from rg_core.grounding.relations import SceneObject, _match
+def obj(name, colour="red", lo=(0, 0, 0), hi=(0, 0, 0), conf=0.9):
+    """A graph object filling the box lo..hi (map frame, z up) with points."""
+    from rg_core.grounding.relations import SceneObject
     from rg_core.grounding.result import GroundedObject
 
-    def obj(name, colour="red"):
-        z = np.zeros(3)
-        return SceneObject([(name, 0.9)], GroundedObject(np.zeros(1, np.int64), np.zeros((1, 3), np.float32),
-                                                         np.zeros((1, 3), np.uint8), z, z, z, np.eye(3), z), colour)
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    pts = (lo + np.random.default_rng(0).random((200, 3)) * (hi - lo)).astype(np.float32)
+    return SceneObject([(name, conf)], GroundedObject(np.arange(200), pts, np.zeros((200, 3), np.uint8), lo, hi,
+                                                      (lo + hi) / 2, np.eye(3), hi - lo), colour)
+
+
+def test_names_match_plurals_compounds_and_categories():
+    from rg_core.grounding.relations import _match
 
     objs = [obj("banana", "yellow"), obj("plum", "purple"), obj("blue cup", "blue"), obj("hammer", "grey"),
             obj("phillips screwdriver", "yellow")]
@@ -125,3 +145,62 @@ def test_rg_eval_scores_relational_queries_as_implicit_queries_of_their_target(g
     imp = [q for q in ev["queries"] if q["kind"] == "implicit"]
     assert len(imp) == 1 and imp[0]["target"] == target and ev["implicit"]["target_accuracy"] == 100.0, imp
     assert ev["implicit"]["miou_visible"] > 0.0
+
+
+def _camera():
+    """Looking along +y from (0, -2, 0.5), z up: +x is right in the image."""
+    from rg_core.geometry.conventions import look_at
+
+    return look_at([0.0, -2.0, 0.5], [0.0, 0.0, 0.5])
+
+
+def _ask(query, objs, max_results=1):
+    from rg_core.grounding.relations import answer, parse
+
+    return answer(parse(query), objs, _camera(), "the test camera", max_results, query, up=np.array([0.0, 0.0, 1.0]))
+
+
+def test_support_ordinals_heights_and_all_over_a_built_graph():
+    table = obj("table", "brown", (-0.6, -0.4, 0.0), (0.6, 0.4, 0.75))
+    cups = [obj(f"{c} cup", c, (x, 0.0, 0.75), (x + 0.08, 0.08, 0.85)) for c, x in (("red", -0.4), ("blue", 0.0),
+                                                                                  ("green", 0.3))]
+    box = obj("toy box", "yellow", (0.9, 0.0, 0.0), (1.2, 0.3, 0.3))                 # on the floor, not the table
+    ball = obj("ball", "orange", (-0.1, -0.1, 0.0), (0.05, 0.05, 0.15))              # under the table
+    lamp = obj("lamp", "white", (0.0, 0.0, 1.6), (0.2, 0.2, 1.7))                    # hanging above it
+    objs = [table, *cups, box, ball, lamp]
+    r = _ask("how many cups are on the table", objs)
+    assert r.success and len(r.objects) == 3 and r.message.startswith("3 'cup' on 'table'")
+    r = _ask("the second cup from the left", objs)
+    assert r.target == "blue cup" and "2nd of 3 from the left, seen from the test camera" in r.explanation
+    assert _ask("the last cup from the left", objs).target == "green cup"
+    assert _ask("the cup on the right", objs).target == "green cup"
+    r = _ask("the fifth cup from the left", objs)
+    assert not r.success and "only 3 'cup'" in r.message
+    assert _ask("the ball under the table", objs).success and _ask("the object under the table", objs).target == "ball"
+    assert _ask("the thing above the table", objs).target == "lamp"
+    r = _ask("the toy box on the table", objs)
+    assert not r.success and r.message == "no 'toy box' on 'table'"
+    assert _ask("the tallest object", objs).target == "table" and _ask("the highest object", objs).target == "lamp"
+    assert _ask("the lowest object", objs).target == "ball"
+    r = _ask("all the cups", objs, max_results=1)
+    assert len(r.objects) == 3, "all: every match, whatever max_results"
+    r = _ask("the cup left of the green cup", objs, max_results=2)       # ranked: the nearest first
+    assert [id(o) for o in r.objects] == [id(cups[1].obj), id(cups[0].obj)]
+    assert len(_ask("the biggest cup", objs, max_results=5).objects) == 3
+    r = _ask("the cup next to the ball", objs)
+    assert r.target == "blue cup" and "next nearest" in r.explanation
+    r = _ask("how many things are near the ball", objs)
+    assert {o.name for o in objs if any(o.obj is x for x in r.objects)} == {"table"}   # the cup is 0.6 m up
+    two = objs + [obj("table", "white", (3, 3, 0), (4, 4, 0.7), conf=0.5)]
+    r = _ask("the cup on the table", two)
+    assert r.success and "2 'table' in the map: relating to the most certain (0.90)" in r.explanation
+
+
+def test_relational_descriptions_of_absent_things_take_the_usual_path(grounder):
+    r = grounder.ground("small metal scoop on a handle")       # a description of a spoon, not a relation
+    assert "graph" not in r.timings
+    r = grounder.ground("the object on top of the giraffe")   # any object: the graph, which lacks the anchor
+    assert not r.success and "no 'giraffe' in the map to relate to" in r.message
+    long = "the cup next to the " + "very " * 400 + "big bowl"
+    r = grounder.ground(long)
+    assert not r.success and "characters" in r.message

@@ -104,6 +104,29 @@ def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarr
     return T
 
 
+def up_direction(cam_to_worlds: np.ndarray) -> np.ndarray:
+    """World "up" [3] (unit) from camera poses [N, 4, 4] (OpenCV axes), for maps without gravity.
+
+    Cameras held by people and robots rarely roll, so their x axes lie in the horizontal plane: up
+    is the direction most orthogonal to all of them (the smallest eigenvector of sum x x^T), signed
+    like the cameras' mean up (-y). When the x axes span one direction only (one viewing direction),
+    the mean -y with its x component removed."""
+    T = np.asarray(cam_to_worlds, np.float64).reshape(-1, 4, 4)
+    if not len(T) or not np.isfinite(T).all():
+        raise ValueError(f"up_direction needs finite camera poses [N, 4, 4], got {np.shape(cam_to_worlds)}")
+    xs, up0 = T[:, :3, 0], -T[:, :3, 1].mean(0)
+    w, v = np.linalg.eigh(xs.T @ xs / len(xs))   # ascending eigenvalues
+    if w[1] > 0.05 * w[2]:                          # the x axes span the horizontal plane
+        up = v[:, 0]
+    else:
+        up = up0 - (up0 @ v[:, 2]) * v[:, 2]
+    n = np.linalg.norm(up)
+    if n < 1e-9:
+        raise ValueError("up_direction: camera poses give no up direction")
+    up = up / n
+    return up if up @ up0 >= 0 else -up
+
+
 def pixels_to_points(u, v, z, K: np.ndarray, c2w: np.ndarray | None = None) -> np.ndarray:
     """Pixel coordinates u, v and depth z (m), arrays of one shape [...] -> points [..., 3] (camera
     frame, or world if c2w given)."""

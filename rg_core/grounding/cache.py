@@ -36,7 +36,7 @@ class MapCache:
     def __init__(self, enabled: bool = True, sizes: dict[str, int] | None = None):
         self.enabled = enabled
         self.sizes = {"groups": 16, "renders": 8, "spacing": 1, "border": 1, "vocabulary": 1, "background": 8,
-                      "graph": 1, **(sizes or {})}
+                      "graph": 1, "up": 1, **(sizes or {})}
         self.tables: dict[str, OrderedDict] = {k: OrderedDict() for k in self.sizes}
         self._tensors: TensorState | None = None
         self._counters: tuple | None = None

@@ -14,7 +14,7 @@ import torch
 
 from ..config import RGConfig
 from ..field.converge import describe
-from ..geometry.conventions import backproject
+from ..geometry.conventions import backproject, up_direction
 from ..geometry.points import map_spacing
 from ..render import rasterize
 from ..util import torch_threads
@@ -302,7 +302,9 @@ class Grounder:
             cam_to_world, camera = kf.cam_to_world, f"keyframe {kf.index}, the newest"
         else:
             camera = "the query's camera"
-        res = relations.answer(rq, objs, np.asarray(cam_to_world, np.float64), camera, max_results, query)
+        up = self.cache.get("up", len(self.mapper.keyframes),
+                            lambda: up_direction(np.stack([k.cam_to_world for k in self.mapper.keyframes])))
+        res = relations.answer(rq, objs, np.asarray(cam_to_world, np.float64), camera, max_results, query, up)
         t["total"] = time.perf_counter() - t0
         res.timings = t
         return res
@@ -325,7 +327,7 @@ class Grounder:
         rq = relations.parse(query) if mode != "explicit" else None
         if rq is not None and rq.attribute_only and f"{rq.colour} {rq.target}" in self.vocabulary():
             rq = None   # "orange cup" is a name
-        if rq is not None:   # about objects in relation to others: over the scene graph
+        if rq is not None and relations.for_graph(rq, self.scene_graph()):   # over the scene graph
             return self._relational(rq, query, max_results, cam_to_world, t0)
         t: dict[str, float] = {}
         res = GroundingResult(False, "", query=query)

@@ -5,12 +5,15 @@ returned (not abstained: see confidence.py) that share most of their Gaussians a
 holding every such name with its calibrated confidence. Each object has its centre, boxes, size and basic colour term (perception.colour_names).
 It is cached with the map and rebuilt when the map or the field changes.
 
-The rule parser (`parse`) reads: "how many X", "the biggest / smallest / tallest X", "the X nearest
-to me / the camera", "the X closest to / next to / near / beside the Y", "the X between the Y and the
-Z", "the X left of / right of / in front of / behind the Y", and colour words before the target
-("the red cup"). A query it does not read as one of these (a plain name, a description) is not a
-relational query and takes the usual path. View-dependent words use the query's camera (the newest
-keyframe unless the caller gives one) and the explanation says which.
+The rule parser (`parse`) reads: "how many X [relation]", "all the X [relation]", "the biggest /
+smallest / tallest / shortest / highest / lowest X", "the X nearest to me / the camera", "the second X
+from the left", "the leftmost X", "the X on the left", "the X closest to / next to / near / beside the
+Y", "the X between the Y and the Z", "the X left of / right of / in front of / behind the Y", "the X on
+/ on top of / under / above the Y", and colour words before the target ("the red cup"). A query it
+does not read as one of these (a plain name, a description) is not a relational query and takes the
+usual path. View-dependent words use the query's camera (the newest keyframe unless the caller gives
+one) and the explanation says which; on / under / above / tall / high use the map's up direction
+(geometry.conventions.up_direction of the keyframes).
 """
 from __future__ import annotations
 
@@ -23,13 +26,27 @@ from ..perception.colour_names import COLOUR_TERMS, colour_histogram
 from .boxes import group_boxes, robust_inliers
 from .result import GroundedObject, GroundingResult
 
-ANY = ("object", "thing", "item", "one", "objects", "things", "items")
+ANY = ("object", "thing", "item", "one", "objects", "things", "items", "whatever", "something", "anything", "stuff")
 SUPERLATIVES = {"biggest": "biggest", "largest": "biggest", "smallest": "smallest", "tiniest": "smallest",
-                "tallest": "tallest", "highest": "tallest", "shortest": "shortest", "lowest": "shortest"}
+                "tallest": "tallest", "highest": "highest", "shortest": "shortest", "lowest": "lowest"}
 RELATIONS = {"closest to": "near", "nearest to": "near", "next to": "near", "near": "near", "beside": "near",
              "close to": "near", "to the left of": "left", "left of": "left", "to the right of": "right",
-             "right of": "right", "in front of": "front", "behind": "behind", "between": "between"}
+             "right of": "right", "on the left of": "left", "on the right of": "right", "in front of": "front",
+             "behind": "behind", "between": "between",
+             "on top of": "on", "on": "on", "sitting on": "on", "resting on": "on", "lying on": "on",
+             "standing on": "on", "atop": "on", "under": "under", "underneath": "under", "beneath": "under",
+             "below": "under", "above": "above", "over": "above"}
 _REL_RE = "|".join(sorted((re.escape(k) for k in RELATIONS), key=len, reverse=True))
+# words common in descriptions ("the fruit that fell on Newton's head"): these relations only between
+# short noun phrases without a clause
+LOOSE = {"on", "under", "above"}
+CLAUSE = {"that", "which", "who", "to", "for", "with", "you", "i", "can", "used", "when", "where", "what", "at", "in",
+          "of", "by", "from", "it", "goes", "fell", "put", "turns"}
+ORDINALS = {"first": 1, "1st": 1, "second": 2, "2nd": 2, "third": 3, "3rd": 3, "fourth": 4, "4th": 4, "fifth": 5,
+            "5th": 5, "sixth": 6, "6th": 6, "last": -1}
+LEAD_IN = (r"^(?:please |can you |could you )?(?:show me |find |give me |point (?:to|at) |locate |where (?:is|are) "
+           r"|which is |what is |pick up |grab |get me |hand me |see )?")
+NEAR_GAP = 0.10        # metres between two objects' boxes that still count as near (counting, "all")
 CAMERA_WORDS = ("me", "the camera", "camera", "you", "the robot", "us")
 SAME_OBJECT = 0.5      # answers sharing this share of the smaller one's Gaussians are one object
 
@@ -42,12 +59,15 @@ class Relational:
     colour: str = ""                   # a basic colour term the target must have
     relation: str = ""                 # near | left | right | front | behind | between
     anchors: list[str] = field(default_factory=list)
-    superlative: str = ""              # biggest | smallest | tallest | shortest | nearest_camera
+    superlative: str = ""              # biggest | smallest | tallest | shortest | highest | lowest | nearest_camera
     count: bool = False
+    ordinal: int = 0                   # the Nth from `side` (-1: the last)
+    side: str = ""                     # left | right (with ordinal)
+    every: bool = False                # "all the X": every match
 
     @property
     def attribute_only(self) -> bool:
-        return not (self.relation or self.superlative or self.count)
+        return not (self.relation or self.superlative or self.count or self.ordinal or self.every)
 
     def describe(self) -> str:
         parts = [f"target: {self.target or 'any object'}"]
@@ -57,9 +77,17 @@ class Relational:
             parts.append(f"relation: {self.relation} " + " and ".join(repr(a) for a in self.anchors))
         if self.superlative:
             parts.append(f"superlative: {self.superlative.replace('_', ' ')}")
+        if self.ordinal:
+            parts.append(f"ordinal: {'last' if self.ordinal < 0 else _nth(self.ordinal)} from the {self.side}")
         if self.count:
             parts.append("count")
+        if self.every:
+            parts.append("all matches")
         return "; ".join(parts)
+
+
+def _nth(n: int) -> str:
+    return f"{n}{'th' if 10 <= n % 100 <= 20 else {1: 'st', 2: 'nd', 3: 'rd'}.get(n % 10, 'th')}"
 
 
 def _strip(phrase: str) -> str:
@@ -83,33 +111,60 @@ def _singular(name: str) -> str:
     return name[:-1] if name.endswith("s") and not name.endswith("ss") else name
 
 
+def _relation(text: str) -> Relational | None:
+    """'cups (that are) next to the laptop' -> Relational, or None."""
+    m = re.fullmatch(r"(?P<t>.+?) (?:(?:that|which) (?:is|are) |(?:is|are) )?(?P<r>" + _REL_RE +
+                     r") (?P<a>.+?)(?: and (?P<b>.+))?", text)
+    if not m:
+        return None
+    t, c = _target(m["t"])
+    rel = RELATIONS[m["r"]]
+    anchors = [_strip(m["a"])] + ([_strip(m["b"])] if m["b"] else [])
+    if rel == "between" and len(anchors) != 2:
+        return None
+    if rel != "between" and m["b"]:
+        anchors = [_strip(m["a"] + " and " + m["b"])]
+    if rel in LOOSE and (len(_strip(m["t"]).split()) > 3 or set(_strip(m["t"]).split()) & CLAUSE
+                         or any(len(a.split()) > 3 or set(a.split()) & CLAUSE for a in anchors)):
+        return None
+    if rel == "near" and anchors[0] in CAMERA_WORDS:
+        return Relational(t, c, superlative="nearest_camera")
+    if not all(anchors):
+        return None
+    return Relational(t, c, rel, [_singular(a) for a in anchors])
+
+
 def parse(query: str) -> Relational | None:
     """A relational query, or None when the query is a plain name or description."""
     q = " ".join(query.lower().split()).strip(" ?.!")
-    m = re.fullmatch(r"how many (?P<t>.+)", q)
+    q = re.sub(LEAD_IN, "", q)
+    m = re.fullmatch(r"(?:how many|count(?: the)?) (?P<t>.+)", q)
     if m:
-        t, c = _target(m["t"])
-        return Relational(t, c, count=True)
+        rest = _strip(m["t"])
+        rq = _relation(rest) or Relational(*_target(rest))
+        rq.count = True
+        return rq
+    m = re.fullmatch(r"(?:all(?: of)?|every|each)(?: the)? (?P<t>.+)", q)
+    if m:
+        rq = _relation(m["t"]) or Relational(*_target(m["t"]))
+        rq.every = True
+        return rq
+    m = re.fullmatch(r"(?:the )?(?P<n>" + "|".join(ORDINALS) + r") (?P<t>.+?) (?:from|on) the (?P<s>left|right)", q)
+    if m:
+        return Relational(*_target(m["t"]), ordinal=ORDINALS[m["n"]], side=m["s"])
+    m = re.fullmatch(r"(?:the )?(?P<s>left|right)most (?P<t>.+)", q) or \
+        re.fullmatch(r"(?P<t>.+?)(?: that| which)?(?: is| are)? on the (?:far )?(?P<s>left|right)(?: side)?", q)
+    if m:
+        return Relational(*_target(m["t"]), ordinal=1, side=m["s"])
     m = re.fullmatch(r"(?:the |a |an )?(?P<s>" + "|".join(SUPERLATIVES) + r"|nearest|closest) (?P<t>.+?)"
                      r"(?: (?:to|from) (?:me|the camera|the robot|you))?", q)
     if m and not re.search(r" (?:" + _REL_RE + r") ", f" {m['t']} "):
         t, c = _target(m["t"])
         sup = "nearest_camera" if m["s"] in ("nearest", "closest") else SUPERLATIVES[m["s"]]
         return Relational(t, c, superlative=sup)
-    m = re.fullmatch(r"(?P<t>.+?) (?P<r>" + _REL_RE + r") (?P<a>.+?)(?: and (?P<b>.+))?", q)
-    if m:
-        t, c = _target(m["t"])
-        rel = RELATIONS[m["r"]]
-        anchors = [_strip(m["a"])] + ([_strip(m["b"])] if m["b"] else [])
-        if rel == "between" and len(anchors) != 2:
-            return None
-        if rel != "between" and m["b"]:
-            anchors = [_strip(m["a"] + " and " + m["b"])]
-        if rel == "near" and anchors[0] in CAMERA_WORDS:
-            return Relational(t, c, superlative="nearest_camera")
-        if not all(anchors):
-            return None
-        return Relational(t, c, rel, [_singular(a) for a in anchors])
+    rq = _relation(q)
+    if rq is not None:
+        return rq
     t, c = _target(q)
     if c and len(q.split()) <= 4:   # "the red cup": a colour and a name (callers check it is not one name)
         return Relational(t, c)
@@ -195,6 +250,16 @@ def _is_a(n: str, name: str) -> bool:
     return any(h == name or h.endswith(" " + name) for h in e.get("hypernyms", []))
 
 
+def for_graph(rq: Relational, objs: list[SceneObject]) -> bool:
+    """Whether the graph should answer `rq`: always for counting, "all", superlatives and ordinals;
+    a relation or a colour only when the target is any object or one the map holds. Otherwise the
+    phrase is a description ("small metal scoop on a handle", "the green plastic beaker") and takes
+    the usual path."""
+    if rq.count or rq.every or rq.superlative or rq.ordinal or not rq.target:
+        return True
+    return bool(_match(objs, rq.target))
+
+
 def _match(objs: list[SceneObject], name: str, colour: str = "") -> list[SceneObject]:
     """Objects that are a `name` (_is_a) and, when given, of that colour."""
     name = _singular(name)
@@ -204,9 +269,55 @@ def _match(objs: list[SceneObject], name: str, colour: str = "") -> list[SceneOb
     return out
 
 
+class _Geometry:
+    """An object's extent along the map's up direction and its horizontal footprint (robust: 2nd and
+    98th percentiles of its Gaussian centres)."""
+
+    def __init__(self, o: SceneObject, up: np.ndarray, e1: np.ndarray, e2: np.ndarray):
+        p = np.asarray(o.obj.points, np.float64)
+        if not len(p):
+            p = o.centre[None]
+        h = p @ up
+        self.bottom, self.top, self.middle = (float(v) for v in np.percentile(h, [2, 98, 50]))
+        xy = np.stack([p @ e1, p @ e2], 1)
+        self.lo, self.hi = np.percentile(xy, 2, 0), np.percentile(xy, 98, 0)
+        self.xy = np.array([o.centre @ e1, o.centre @ e2])
+
+    @property
+    def height(self) -> float:
+        return self.top - self.bottom
+
+    def over(self, other: "_Geometry", margin: float = 0.02) -> bool:
+        """This one's horizontal centre lies on `other`'s footprint."""
+        return bool(np.all(self.xy >= other.lo - margin) and np.all(self.xy <= other.hi + margin))
+
+
+def _vertical(rel: str, t: _Geometry, a: _Geometry) -> bool:
+    """on: resting on a's top (within 3 cm + 10 % of a's height, or sunk in by at most half its own
+    height: the hidden bottom is not mapped); above: over a's footprint and clear of it (not resting
+    on it); under: below a's middle, under its footprint."""
+    if not t.over(a):
+        return False
+    if rel == "on":
+        gap = t.bottom - a.top
+        return -0.5 * t.height - 0.02 <= gap <= 0.03 + 0.1 * a.height and t.middle > a.middle
+    if rel == "above":
+        return t.bottom > a.top + 0.03 + 0.1 * a.height
+    return t.top <= a.middle   # under
+
+
+def _box_gap(a: SceneObject, b: SceneObject) -> float:
+    """Distance between two axis-aligned boxes (0 when they overlap)."""
+    amin, amax, bmin, bmax = (np.asarray(v, np.float64) for v in (a.obj.aabb_min, a.obj.aabb_max,
+                                                                   b.obj.aabb_min, b.obj.aabb_max))
+    lo = np.maximum(amin - bmax, bmin - amax)
+    return float(np.linalg.norm(np.maximum(lo, 0.0)))
+
+
 def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, camera: str,
-           max_results: int, query: str) -> GroundingResult:
-    """Resolve a parsed query over the graph's objects."""
+           max_results: int, query: str, up: np.ndarray | None = None) -> GroundingResult:
+    """Resolve a parsed query over the graph's objects. `up` [3]: the map's up direction (None: the
+    camera's -y)."""
     res = GroundingResult(False, "", query=query, target=rq.target)
     known = ", ".join(sorted({o.name for o in objs})) or "none"
     anchors = []
@@ -225,49 +336,84 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
         return res
     notes = [f"{len(f)} {a!r} in the map: relating to the most certain ({f[0].names[0][1]:.2f})"
              for a, f in anchors if len(f) > 1]
-    w2c = np.linalg.inv(np.asarray(cam_to_world, np.float64))
+    c2w = np.asarray(cam_to_world, np.float64)
+    w2c = np.linalg.inv(c2w)
     cam = lambda p: w2c[:3, :3] @ p + w2c[:3, 3]                                  # noqa: E731 - world -> camera
-    if rq.count:
-        chosen, why = cands, f"{len(cands)} {what!r} in the map"
+    up = np.asarray(up if up is not None else -c2w[:3, 1], np.float64)
+    up = up / np.linalg.norm(up)
+    e1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    geo = {id(o): _Geometry(o, up, e1, np.cross(up, e1)) for o in objs}
+    G = lambda o: geo[id(o)]                                                        # noqa: E731
+    ref = [f[0] for _, f in anchors]
+    point = (ref[0].centre + ref[1].centre) / 2 if rq.relation == "between" else ref[0].centre if ref else None
+    where = ""
+    if rq.relation:   # keep the candidates the relation holds for (near / between: all, ranked below)
+        pc = cam(point)
+        keep = {"left": lambda o: cam(o.centre)[0] < pc[0], "right": lambda o: cam(o.centre)[0] > pc[0],
+                "front": lambda o: cam(o.centre)[2] < pc[2], "behind": lambda o: cam(o.centre)[2] > pc[2],
+                **{r: (lambda o, r=r: _vertical(r, G(o), G(ref[0]))) for r in ("on", "above", "under")}
+                }.get(rq.relation)
+        if keep is None and (rq.count or rq.every):   # near / between as a set: within NEAR_GAP of the anchor(s)
+            keep = lambda o: all(_box_gap(o, r) <= NEAR_GAP for r in ref)                # noqa: E731
+        if keep is not None:
+            cands = [o for o in cands if keep(o)]
+        anchor_words = " and ".join(repr(a) for a in rq.anchors)
+        where = f" {rq.relation} {anchor_words}" + (f" seen from {camera}" if rq.relation in
+                                                     ("left", "right", "front", "behind") else "")
+        if not cands and not rq.count:
+            res.message = f"no {what!r}{where}"
+            res.explanation = "; ".join([rq.describe(), f"no {what!r}{where}"] + notes) + "."
+            return res
+    side_x = lambda o: float(cam(o.centre)[0] / max(cam(o.centre)[2], 1e-6))      # noqa: E731 - image-plane x
+    if rq.count or rq.every:
+        chosen = sorted(cands, key=side_x)
+        why = f"{len(chosen)} {what!r}{where} in the map"
+    elif rq.ordinal:
+        order = sorted(cands, key=side_x, reverse=rq.side == "right")
+        if rq.ordinal > len(order):
+            res.message = f"only {len(order)} {what!r}{where} in the map, no {_nth(rq.ordinal)} from the {rq.side}"
+            res.explanation = rq.describe()
+            return res
+        chosen = [order[rq.ordinal - 1 if rq.ordinal > 0 else -1]]
+        nth = "last" if rq.ordinal < 0 else _nth(rq.ordinal)
+        why = f"{nth} of {len(order)} from the {rq.side}, seen from {camera}"
     elif rq.superlative:
         key = {"biggest": lambda o: -o.volume, "smallest": lambda o: o.volume,
-               "tallest": lambda o: cam(o.centre)[1] - np.asarray(o.obj.obb_extent).max() / 2,
-               "shortest": lambda o: -(cam(o.centre)[1] - np.asarray(o.obj.obb_extent).max() / 2),
+               "tallest": lambda o: -G(o).height, "shortest": lambda o: G(o).height,
+               "highest": lambda o: -G(o).top, "lowest": lambda o: G(o).top,
                "nearest_camera": lambda o: float(np.linalg.norm(cam(o.centre)))}[rq.superlative]
-        cands = sorted(cands, key=key)
-        chosen = cands[:1]
+        chosen = cands = sorted(cands, key=key)
         vals = {"biggest": lambda o: f"{1e6 * o.volume:.0f} cm3", "smallest": lambda o: f"{1e6 * o.volume:.0f} cm3",
+                "tallest": lambda o: f"{100 * G(o).height:.0f} cm tall",
+                "shortest": lambda o: f"{100 * G(o).height:.0f} cm tall",
+                "highest": lambda o: f"top at {G(o).top:.2f} m up", "lowest": lambda o: f"top at {G(o).top:.2f} m up",
                 "nearest_camera": lambda o: f"{np.linalg.norm(cam(o.centre)):.2f} m"}
-        fmt = vals.get(rq.superlative, lambda o: f"top {-cam(o.centre)[1]:.2f} m up in the camera")
+        fmt = vals[rq.superlative]
         why = f"{rq.superlative.replace('_', ' ')} of {len(cands)}: {fmt(chosen[0])}" + (
             f", next {fmt(cands[1])}" if len(cands) > 1 else "")
-        if rq.superlative in ("tallest", "shortest", "nearest_camera"):
-            why += f" ({camera})"
-    else:
-        ref = [f[0] for _, f in anchors]
-        if rq.relation == "between":
-            point = (ref[0].centre + ref[1].centre) / 2
+        why += f" ({camera})" if rq.superlative == "nearest_camera" else ""
+    elif rq.relation:
+        if rq.relation in ("on", "under", "above"):   # the one most squarely on / under the anchor
+            d = sorted((float(np.linalg.norm(G(o).xy - G(ref[0]).xy)), i) for i, o in enumerate(cands))
+            unit = "m from its centre"
         else:
-            point = ref[0].centre
-        pc = cam(point)
-        side = {"left": lambda o: cam(o.centre)[0] < pc[0], "right": lambda o: cam(o.centre)[0] > pc[0],
-                "front": lambda o: cam(o.centre)[2] < pc[2], "behind": lambda o: cam(o.centre)[2] > pc[2]}
-        if rq.relation in side:
-            cands = [o for o in cands if side[rq.relation](o)]
-            if not cands:
-                res.message = f"no {what!r} {rq.relation} of {rq.anchors[0]!r} seen from {camera}"
-                res.explanation = rq.describe()
-                return res
-        d = sorted((float(np.linalg.norm(o.centre - point)), i) for i, o in enumerate(cands))
-        chosen = [cands[d[0][1]]]
-        target = " and ".join(repr(a) for a in rq.anchors)
-        why = f"{rq.relation} {target} ({d[0][0]:.2f} m" + (f", next nearest {d[1][0]:.2f} m" if len(d) > 1 else "") + ")"
-        if rq.relation in side:
-            why += f", seen from {camera}"
-    chosen = chosen[:max(max_results, 1)] if not rq.count else chosen
+            d = sorted((float(np.linalg.norm(o.centre - point)), i) for i, o in enumerate(cands))
+            unit = "m"
+        chosen = [cands[i] for _, i in d]   # ranked: max_results > 1 returns the runners-up too
+        why = f"{where.strip()} ({d[0][0]:.2f} {unit}" + (
+            f", next nearest {d[1][0]:.2f} m" if len(d) > 1 else "") + ")"
+    else:   # attribute only ("the red cup"): the most certain
+        chosen = sorted(cands, key=lambda o: -o.names[0][1])
+        why = f"{len(cands)} {what!r} in the map" + (", the most certain" if len(cands) > 1 else "")
+    chosen = chosen if rq.count or rq.every else chosen[:max(max_results, 1)]
+    if not chosen:   # counting nothing is an answer: zero
+        res.success, res.message = True, f"0 {what!r}{where} in the map"
+        res.explanation = "; ".join([rq.describe(), res.message] + notes) + "."
+        return res
     res.success, res.objects = True, [o.obj for o in chosen]
     res.target = chosen[0].name
     res.confidence = min(c for o in chosen for n, c in o.names[:1])
-    res.message = (f"{why}" if rq.count else f"{res.target!r}: {why}") + f"; {len(res.objects)} group(s)"
+    res.message = (f"{why}" if rq.count or rq.every else f"{res.target!r}: {why}") + f"; {len(res.objects)} group(s)"
     res.explanation = "; ".join([rq.describe(), why] + notes) + "."
     return res
