@@ -207,8 +207,9 @@ def cmd_ground(args, cfg) -> dict:
 
 def cmd_graph(args, cfg) -> dict:
     grounder = _grounder_from_args(args, cfg)
-    objs = grounder.scene_graph()
-    return {"map": args.map, "objects": [o.to_json() for o in objs]}
+    from .grounding.relations import graph_json
+
+    return {"map": args.map, **graph_json(grounder.scene_graph(), grounder.up())}
 
 
 def cmd_eval(args, cfg) -> dict:
@@ -333,11 +334,12 @@ def build_parser() -> argparse.ArgumentParser:
     common(p)
     p.set_defaults(func=cmd_ground)
 
-    p = sub.add_parser("graph", help="the map's objects: names with confidence, centre, size, colour")
+    p = sub.add_parser("graph", help="the map's objects (names with confidence, centre, size, colour) and "
+                                      "their on / near relations")
     p.add_argument("map", help="map file from rg map --supervise --train-field S")
     map_models(p)
     common(p)
-    p.set_defaults(func=cmd_graph)
+    p.set_defaults(func=cmd_graph, human=_graph_human)
 
     p = sub.add_parser("eval", help="run queries.json on the test views: mIoU, localization, box IoU, timings")
     p.add_argument("scene", help="ReasoningGD or BOP scene folder (BOP: scene_camera.json + scene_gt.json)")
@@ -380,6 +382,12 @@ def build_parser() -> argparse.ArgumentParser:
     common(p)
     p.set_defaults(func=cmd_demo, human=_demo_human)
     return parser
+
+
+def _graph_human(result: dict) -> str:
+    from .viz.summary import graph_summary
+
+    return graph_summary(result)
 
 
 def _demo_human(result: dict) -> str:

@@ -158,3 +158,22 @@ def result_to_response(result: GroundingResult, frame_id: str, stamp: float | Ti
     res.stage_names = [str(k) for k in result.timings]
     res.stage_seconds = [float(v) for v in result.timings.values()]
     return res
+
+
+def graph_to_msg(objs: list, relations: list, up: np.ndarray, frame_id: str, stamp: float | Time | None = None):
+    """Scene graph (relations.SceneObject list, graph_relations edges, up [3]) -> rg_interfaces/SceneGraph."""
+    from rg_interfaces.msg import SceneGraph, SceneObject, SceneRelation
+
+    out = SceneGraph(header=header(frame_id, stamp), up=_vec(up, Vector3))
+    for o in objs:
+        g = object_to_msg(o.obj)
+        out.objects.append(SceneObject(name=o.name, names=[n for n, _ in o.names],
+                                       name_confidences=[float(c) for _, c in o.names], colour=o.colour,
+                                       pose=g.pose, size=g.size, aabb_min=g.aabb_min, aabb_max=g.aabb_max,
+                                       gaussian_count=g.gaussian_count))
+    n = len(objs)
+    for i, pred, j, d in relations:
+        if not (0 <= i < n and 0 <= j < n):
+            raise ValueError(f"SceneGraph: relation ({i}, {pred!r}, {j}) names an object outside 0..{n - 1}")
+        out.relations.append(SceneRelation(subject=int(i), predicate=str(pred), object=int(j), distance=float(d)))
+    return out

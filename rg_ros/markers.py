@@ -2,7 +2,7 @@
 
 Per grounded object: an oriented box as LINE_LIST edges, the same box as a translucent CUBE and a
 TEXT_VIEW_FACING label above it. The array starts with a DELETEALL marker so that the boxes of the
-previous query disappear.
+previous query disappear. The scene graph: one text label per object (`graph_markers`).
 """
 from __future__ import annotations
 
@@ -67,4 +67,28 @@ def result_markers(result: GroundingResult, frame_id: str, stamp: Time | None = 
         text.pose.position = Point(x=float(center[0]), y=float(center[1]), z=top)
         text.pose.orientation.w = 1.0
         out += [edges, cube, text]
+    return MarkerArray(markers=out)
+
+
+GRAPH_NS = "rg_scene_graph"
+
+
+def graph_markers(objs: list, up: np.ndarray, frame_id: str, stamp: Time | None = None,
+                  text_height: float = 0.03) -> MarkerArray:
+    """A TEXT_VIEW_FACING label "name (colour)" above each scene-graph object (relations.SceneObject),
+    after a DELETEALL of the namespace."""
+    hdr = Header(frame_id=frame_id, stamp=stamp if stamp is not None else Time())
+    up = np.asarray(up, np.float64).reshape(3)
+    out = [Marker(header=hdr, ns=GRAPH_NS, id=0, action=Marker.DELETEALL)]
+    for i, o in enumerate(objs):
+        lo, hi = np.asarray(o.obj.aabb_min, np.float64), np.asarray(o.obj.aabb_max, np.float64)
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+            continue
+        top = (lo + hi) / 2 + up * (abs(up) @ (hi - lo) / 2 + text_height)   # just above the box along up
+        text = Marker(header=hdr, ns=GRAPH_NS, id=i + 1, type=Marker.TEXT_VIEW_FACING, action=Marker.ADD,
+                      scale=Vector3(z=float(text_height)), color=ColorRGBA(r=1.0, g=1.0, b=0.6, a=1.0),
+                      text=f"{o.name} ({o.colour})" if o.colour else o.name)
+        text.pose.position = Point(x=float(top[0]), y=float(top[1]), z=float(top[2]))
+        text.pose.orientation.w = 1.0
+        out.append(text)
     return MarkerArray(markers=out)

@@ -30,7 +30,7 @@ from rg_core.io.sync import ApproximateTimeSync, SyncedSet
 from rg_core.perception.query import parse_mode, query_problem
 
 from . import convert as cv
-from .markers import result_markers
+from .markers import graph_markers, result_markers
 from .tf_input import TFInput
 from .params import DIAGNOSTICS_TOPIC, GROUND_SERVICE, NODE_NAME, NodeParams, check_unknown_params, declare_params
 from .pointcloud import to_pointcloud2
@@ -67,6 +67,10 @@ class GroundingNode(TFInput, Node):
             self.create_timer(1.0 / p.mask_rate, self._on_masks, callback_group=MutuallyExclusiveCallbackGroup())
         if p.map_cloud_period > 0:
             self.create_timer(p.map_cloud_period, self._on_map_cloud, callback_group=MutuallyExclusiveCallbackGroup())
+        self._graph_lock = threading.Lock()
+        self._graph_sent: list | None = None       # the object list last published (the grounder's cached one)
+        if p.scene_graph_period > 0:
+            self.create_timer(p.scene_graph_period, self._on_scene_graph, callback_group=MutuallyExclusiveCallbackGroup())
         self.worker.start()
         pose_from = {"tf": f"TF {p.map_frame} <- image frame", "topic": f"PoseStamped {self.topics.get('pose')}",
                      "odometry": f"Odometry {self.topics.get('pose')}"}[p.pose_source]
@@ -146,6 +150,7 @@ class GroundingNode(TFInput, Node):
     def _make_outputs(self, p: NodeParams) -> None:
         """Services and publishers; the last answer (cloud, markers) is latched, so RViz or `ros2
         topic echo` started later still gets it."""
+        from rg_interfaces.msg import SceneGraph
         from rg_interfaces.srv import Ground
 
         self.create_service(Ground, GROUND_SERVICE, self._on_ground, callback_group=MutuallyExclusiveCallbackGroup())
@@ -161,6 +166,8 @@ class GroundingNode(TFInput, Node):
         self.pub_visible = pub(Image, "~/visible_mask", 1)
         self.pub_grounded = pub(PointCloud2, "~/grounded_cloud", latched)
         self.pub_markers = pub(MarkerArray, "~/markers", latched)
+        self.pub_graph = pub(SceneGraph, "~/scene_graph", latched)
+        self.pub_graph_markers = pub(MarkerArray, "~/scene_graph_markers", latched)
         self.pub_map_cloud = pub(PointCloud2, "~/map_cloud", 1)
         self.pub_status = pub(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
 
@@ -260,7 +267,10 @@ class GroundingNode(TFInput, Node):
         if problem:
             result = GroundingResult(False, problem, query=query[:200])
         else:
-            result = self.worker.ground(query, mode, int(request.max_results) or p.max_results, p.ground_timeout)
+            with self._state_lock:   # view-dependent words ("left of", "nearest to me"): the robot's camera
+                cam = self._camera[3] if self._camera is not None else None
+            result = self.worker.ground(query, mode, int(request.max_results) or p.max_results, p.ground_timeout,
+                                        cam_to_world=cam)
         stamp = self._stamp_now()
         try:
             response = cv.result_to_response(result, p.map_frame, stamp, response=response)
@@ -277,6 +287,8 @@ class GroundingNode(TFInput, Node):
             self.pub_grounded.publish(response.cloud)
             self.pub_markers.publish(result_markers(result, p.map_frame, stamp, box_alpha=p.marker_alpha))
             self._on_masks()
+        if "graph" in result.timings:   # the answer built or used the scene graph: publish it if new
+            self._on_scene_graph()
         else:
             log.warning(f"ground '{short}' failed: {result.message}")
         return response
@@ -304,6 +316,9 @@ class GroundingNode(TFInput, Node):
         with self._state_lock:
             self._last_result = None
         self.pub_markers.publish(result_markers(GroundingResult(False, "reset"), self.p.map_frame, self._stamp_now()))
+        with self._graph_lock:
+            self._graph_sent = None
+        self.pub_graph_markers.publish(graph_markers([], np.array([0.0, 0.0, 1.0]), self.p.map_frame, self._stamp_now()))
         response.success, response.message = True, "map reset: 0 keyframes, 0 Gaussians"
         self.get_logger().info(response.message)
         return response
@@ -325,6 +340,22 @@ class GroundingNode(TFInput, Node):
         amodal, visible = masks
         self.pub_amodal.publish(cv.mask_to_image(amodal, frame_id, stamp))
         self.pub_visible.publish(cv.mask_to_image(visible, frame_id, stamp))
+
+    def _on_scene_graph(self) -> None:
+        """Publish the scene graph (latched) and its text markers when the map's graph changed."""
+        with self._graph_lock:
+            graph = self.worker.scene_graph(timeout=self.p.ground_timeout)
+            if graph is None or graph[0] is self._graph_sent:
+                return
+            objs, rels, up = graph
+            stamp = self._stamp_now()
+            try:
+                self.pub_graph.publish(cv.graph_to_msg(objs, rels, up, self.p.map_frame, stamp))
+                self.pub_graph_markers.publish(graph_markers(objs, up, self.p.map_frame, stamp))
+            except Exception as exc:  # noqa: BLE001 - the node lives
+                return self._warn("graph", f"scene graph not published: {type(exc).__name__}: {exc}")
+            self._graph_sent = objs
+            self.get_logger().info(f"scene graph: {len(objs)} objects, {len(rels)} relations")
 
     def _on_map_cloud(self) -> None:
         if self.pub_map_cloud.get_subscription_count() == 0:

@@ -128,6 +128,9 @@ class NodeParams:
     camera_info_timeout: float = _p(5.0, "warn when images arrive but no CameraInfo came for this long (s)",
                                     0.0, 3600.0)
     marker_alpha: float = _p(0.25, "opacity of the grounded boxes (CUBE markers)", 0.0, 1.0)
+    scene_graph_period: float = _p(30.0, "seconds between ~/scene_graph updates (latched, with text markers on "
+                                   "~/scene_graph_markers; rebuilt only when the map changed; 0 = after /ground "
+                                   "answers only)", 0.0, 86400.0)
 
     def input_config(self) -> InputConfig:
         return InputConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(InputConfig)})

@@ -308,33 +308,58 @@ class MapWorker:
     def _acquire(self, timeout: float) -> bool:
         return self.lock.acquire(timeout=timeout if timeout > 0 else -1)
 
-    def ground(self, query: str, mode: str = "auto", max_results: int = 1, timeout: float = 30.0) -> GroundingResult:
-        """Ground `query` in the current map; never raises (failures are unsuccessful results)."""
+    def ground(self, query: str, mode: str = "auto", max_results: int = 1, timeout: float = 30.0,
+               cam_to_world: np.ndarray | None = None) -> GroundingResult:
+        """Ground `query` in the current map; never raises (failures are unsuccessful results).
+        `cam_to_world` [4, 4]: the camera of view-dependent words (None: the newest keyframe)."""
         problem = query_problem(query, self.cfg.ground.max_query_chars)
         if problem:
             return GroundingResult(False, problem, query=str(query)[:200])
         if not self.mapper.keyframes:
             return GroundingResult(False, "map is empty: no keyframes yet (send frames first)", query=query)
-        try:
-            from rg_core.field import FeatureField
-            from rg_core.grounding.pipeline import Grounder
-        except ImportError as exc:
-            return GroundingResult(False, f"grounding not available: {exc}", query=query)
         if not self._acquire(timeout):
             return GroundingResult(False, f"map busy for {timeout:.1f} s (mapping); try again", query=query)
         try:
-            if self.field is None:
-                self.field = FeatureField(self.mapper, self.cfg.field)
-            if self._grounder is None:
-                text = self._perception[1].encode_texts if self._perception is not None else None  # the map's space
-                self._grounder = Grounder.from_map(self.mapper, self.cfg, field=self.field, text_encoder=text)
-            return self._grounder.ground(query, mode=mode, max_results=max_results)
+            return self._ensure_grounder().ground(query, mode=mode, max_results=max_results, cam_to_world=cam_to_world,
+                                                  camera="the robot's current camera")
         except ImportError as exc:   # a stage of the pipeline (reasoner, text encoder) has not landed
             self.log.error("grounding '%s': %s", query[:80], exc)
             return GroundingResult(False, f"grounding not available: {exc}", query=query)
         except Exception as exc:  # noqa: BLE001 - the service answers, the node lives
             self.log.error("grounding '%s' failed: %s\n%s", query[:80], exc, traceback.format_exc())
             return GroundingResult(False, f"grounding failed: {type(exc).__name__}: {exc}", query=query)
+        finally:
+            self.lock.release()
+
+    def _ensure_grounder(self):
+        """The Grounder over the current map (made on first use); call with the lock held."""
+        from rg_core.field import FeatureField
+        from rg_core.grounding.pipeline import Grounder
+
+        if self.field is None:
+            self.field = FeatureField(self.mapper, self.cfg.field)
+        if self._grounder is None:
+            text = self._perception[1].encode_texts if self._perception is not None else None  # the map's space
+            self._grounder = Grounder.from_map(self.mapper, self.cfg, field=self.field, text_encoder=text)
+        return self._grounder
+
+    def scene_graph(self, timeout: float = 30.0) -> tuple[list, list, np.ndarray] | None:
+        """(objects, relations, up) of the current map's scene graph (relations.build_graph, cached
+        with the map), or None when the map is empty, not supervised yet or busy for `timeout` s.
+        Never raises: a failure is logged and gives None."""
+        if not self.mapper.keyframes or not self._acquire(timeout):
+            return None
+        try:
+            from rg_core.grounding.relations import graph_relations
+
+            g = self._ensure_grounder()
+            if g._not_ready():
+                return None
+            objs, up = g.scene_graph(), g.up()
+            return objs, graph_relations(objs, up), up
+        except Exception as exc:  # noqa: BLE001 - the node lives
+            self.log.error("scene graph failed: %s\n%s", exc, traceback.format_exc())
+            return None
         finally:
             self.lock.release()
 

@@ -49,8 +49,12 @@ def test_demo_writes_contact_sheet(tmp_path):
     # rg graph on the demo's map: its objects with names, confidences, centres and colours
     r = run_rg("graph", str(tmp_path / "demo" / "scene.rgmap"), "--json")
     assert r.returncode == 0, r.stderr
-    objs = json.loads(r.stdout)["objects"]
+    graph = json.loads(r.stdout)
+    objs = graph["objects"]
     assert objs and all(o["names"] and len(o["centre"]) == 3 and o["colour"] for o in objs), objs
+    assert len(graph["up"]) == 3 and all(r["predicate"] in ("on", "near") for r in graph["relations"])
+    r = run_rg("graph", str(tmp_path / "demo" / "scene.rgmap"))
+    assert r.returncode == 0 and all(o["name"] in r.stdout for o in objs) and "centre (" in r.stdout, r.stdout
     # The human summary (what `rg demo` prints without --json) names what a person needs.
     from rg_core.viz.summary import demo_summary
 

@@ -125,7 +125,7 @@ def test_rviz_config_shows_the_node_topics():
     cfg = yaml.safe_load(RVIZ.read_text())
     displays = cfg["Visualization Manager"]["Displays"]
     topics = {d["Topic"]["Value"] for d in displays if "Topic" in d}
-    for t in ("map_cloud", "grounded_cloud", "markers", "amodal_mask", "visible_mask"):
+    for t in ("map_cloud", "grounded_cloud", "markers", "scene_graph_markers", "amodal_mask", "visible_mask"):
         assert f"/{NODE_NAME}/{t}" in topics
     assert cfg["Visualization Manager"]["Global Options"]["Fixed Frame"] == "map"
 

@@ -73,6 +73,47 @@ def check_response(res, result: GroundingResult) -> None:
 
 # ------------------------------------------------------------------------------ conversion
 
+def make_graph():
+    """A table with a mug resting on it and a ball beside the table (z up), as a scene graph."""
+    from rg_core.grounding.relations import SceneObject, graph_relations
+
+    def box(name, lo, hi, colour, seed):
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        pts = (lo + np.random.default_rng(seed).random((100, 3)) * (hi - lo)).astype(np.float32)
+        o = GroundedObject(np.arange(100) + 100 * seed, pts, np.zeros((100, 3), np.uint8), lo, hi, (lo + hi) / 2,
+                           np.eye(3), hi - lo, 0.9)
+        return SceneObject([(name, 0.9), (name.split()[-1] + "s", 0.4)], o, colour)
+
+    objs = [box("table", [-0.5, -0.4, 0.0], [0.5, 0.4, 0.7], "brown", 0),
+            box("red mug", [0.0, 0.0, 0.7], [0.08, 0.08, 0.8], "red", 1),
+            box("ball", [0.55, 0.0, 0.0], [0.65, 0.1, 0.1], "orange", 2)]
+    up = np.array([0.0, 0.0, 1.0])
+    return objs, graph_relations(objs, up), up
+
+
+def test_scene_graph_message_and_markers():
+    from rg_interfaces.msg import SceneGraph
+
+    from rg_ros.markers import GRAPH_NS, graph_markers
+
+    objs, rels, up = make_graph()
+    assert (1, "on", 0) in [r[:3] for r in rels] and (0, "near", 2) in [r[:3] for r in rels], rels
+    msg = deserialize_message(serialize_message(cv.graph_to_msg(objs, rels, up, "map", 3.0)), SceneGraph)
+    assert msg.header.frame_id == "map" and [msg.up.x, msg.up.y, msg.up.z] == [0.0, 0.0, 1.0]
+    assert [o.name for o in msg.objects] == ["table", "red mug", "ball"] and msg.objects[1].colour == "red"
+    assert list(msg.objects[1].names) == ["red mug", "mugs"] and msg.objects[1].name_confidences[1] == pytest.approx(0.4)
+    assert msg.objects[0].gaussian_count == 100 and msg.objects[0].aabb_max.z == pytest.approx(0.7)
+    on = [(r.subject, r.object) for r in msg.relations if r.predicate == "on"]
+    assert on == [(1, 0)]
+    with pytest.raises(ValueError, match="outside"):
+        cv.graph_to_msg(objs, [(0, "on", 7, 0.0)], up, "map")
+    m = graph_markers(objs, up, "map").markers
+    assert m[0].action == m[0].DELETEALL and m[0].ns == GRAPH_NS
+    assert [x.text for x in m[1:]] == ["table (brown)", "red mug (red)", "ball (orange)"]
+    assert m[2].pose.position.z > 0.8                             # above the mug's top along up
+
+
+
 def test_result_to_response_survives_serialization():
     result = make_result()
     res = cv.result_to_response(result, "map", 7.5)

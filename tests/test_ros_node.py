@@ -126,7 +126,10 @@ class Harness:
         params = write_params(tmp / "a.yaml", "rg_node", pose_source="topic", map_width=80, iters_per_keyframe=2, torch_threads=1,
                               frame_queue_size=2, features=True, train_slice=0.5, train_seconds_max=2.0,
                               status_period=0.3, save_path=str(self.save_a), mask_rate=4.0, map_cloud_period=1.0,
-                              max_query_chars=2000, camera_info_timeout=3.0)
+                              max_query_chars=2000, camera_info_timeout=3.0,
+                              # plumbing: publish the best guess (offline naming of this 80 px map is not
+                              # sure of 'orange', rightly: see the xfail below)
+                              min_confidence=0.0)
         self.node_a = start(["node", "--params", str(params), *ros_args(TOPICS_A)], self.log_a)
         self.scene = tmp / "scene"   # made while node A starts
         subprocess.run([sys.executable, "-m", "rg_core.cli", "synth", str(self.scene), "--views", "12", "--size",
@@ -310,6 +313,31 @@ def test_ground_publishes_masks_cloud_and_markers(h):
     kinds = {mk.type for mk in h.msgs["markers"][-1].markers}
     assert {Marker.CUBE, Marker.LINE_LIST, Marker.TEXT_VIEW_FACING} <= kinds
     assert h.msgs["grounded"][-1].header.frame_id == "map" and h.msgs["grounded"][-1].width == res.cloud.width
+
+
+def test_relational_query_publishes_the_scene_graph(h):
+    """A counting query goes over the scene graph, with the robot's camera for view-dependent words;
+    the graph then arrives latched on ~/scene_graph (a subscriber that joins late gets it) with its
+    text markers."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from rg_interfaces.msg import SceneGraph
+    from visualization_msgs.msg import MarkerArray
+
+    res = h.call(h.ground, Ground.Request(query="how many objects are there"), timeout=180)
+    if "grounding not available" in res.message:
+        pytest.xfail(res.message)
+    assert "graph" in res.stage_names, (res.message, list(res.stage_names))
+    near = h.call(h.ground, Ground.Request(query="the object nearest to me"), timeout=60)
+    assert "the robot's current camera" in near.explanation or not near.success, near.message
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    got: dict[str, list] = {"graph": [], "labels": []}
+    h.node.create_subscription(SceneGraph, "/rg_node/scene_graph", lambda m: got["graph"].append(m), latched)
+    h.node.create_subscription(MarkerArray, "/rg_node/scene_graph_markers", lambda m: got["labels"].append(m), latched)
+    wait_for(lambda: got["graph"] and got["labels"], 30, "the latched scene graph and its labels")
+    g = got["graph"][-1]
+    assert g.header.frame_id == "map" and abs(np.linalg.norm([g.up.x, g.up.y, g.up.z]) - 1) < 1e-5
+    assert len(g.objects) == (len(res.objects) if res.success else 0), (res.message, [o.name for o in g.objects])
+    assert len(got["labels"][-1].markers) == len(g.objects) + 1           # DELETEALL, then one label each
 
 
 @pytest.mark.xfail(strict=False, reason="offline ConSE supervision does not recognise the rendered orange: "

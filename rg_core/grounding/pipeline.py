@@ -279,12 +279,12 @@ class Grounder:
         return self.mapper.supervision.pca.pca.inverse(z)
 
     def ground(self, query: str, mode: str = "auto", max_results: int = 1,
-               cam_to_world: np.ndarray | None = None) -> GroundingResult:
+               cam_to_world: np.ndarray | None = None, camera: str = "the query's camera") -> GroundingResult:
         """`cam_to_world` [4, 4]: the camera view-dependent words ("left of", "nearest to me") refer
-        to; None: the newest keyframe."""
+        to, named `camera` in the explanation; None: the newest keyframe."""
         self._outer_threads = torch.get_num_threads()
         with torch_threads(self.gcfg.query_threads):
-            return self._ground(query, mode, max_results, cam_to_world)
+            return self._ground(query, mode, max_results, None if cam_to_world is None else (cam_to_world, camera))
 
     def scene_graph(self) -> list:
         """The map's objects (relations.build_graph over the vocabulary), cached with the map."""
@@ -292,24 +292,25 @@ class Grounder:
         names = self.vocabulary()
         return self.cache.get("graph", tuple(names), lambda: relations.build_graph(self, names))
 
-    def _relational(self, rq, query: str, max_results: int, cam_to_world, t0: float) -> GroundingResult:
-        t = {}
-        s = time.perf_counter()
-        objs = self.scene_graph()
-        t["graph"] = time.perf_counter() - s
-        if cam_to_world is None:
+    def up(self) -> np.ndarray:
+        """The map's up direction [3] from its keyframes' poses (geometry.conventions.up_direction)."""
+        self._check_cache()
+        return self.cache.get("up", len(self.mapper.keyframes),
+                              lambda: up_direction(np.stack([k.cam_to_world for k in self.mapper.keyframes])))
+
+    def _relational(self, rq, objs: list, query: str, max_results: int, view: tuple | None,
+                    t: dict, t0: float) -> GroundingResult:
+        """Over the scene graph `objs`; `view` = (cam_to_world, its name) or None (the newest keyframe)."""
+        if view is None:
             kf = self.mapper.keyframes[-1]
-            cam_to_world, camera = kf.cam_to_world, f"keyframe {kf.index}, the newest"
-        else:
-            camera = "the query's camera"
-        up = self.cache.get("up", len(self.mapper.keyframes),
-                            lambda: up_direction(np.stack([k.cam_to_world for k in self.mapper.keyframes])))
-        res = relations.answer(rq, objs, np.asarray(cam_to_world, np.float64), camera, max_results, query, up)
+            view = kf.cam_to_world, f"keyframe {kf.index}, the newest"
+        cam_to_world, camera = view
+        res = relations.answer(rq, objs, np.asarray(cam_to_world, np.float64), camera, max_results, query, self.up())
         t["total"] = time.perf_counter() - t0
         res.timings = t
         return res
 
-    def _ground(self, query: str, mode: str, max_results: int, cam_to_world=None) -> GroundingResult:
+    def _ground(self, query: str, mode: str, max_results: int, view: tuple | None = None) -> GroundingResult:
         t0 = time.perf_counter()
         bad = query_problem(query, self.gcfg.max_query_chars)
         if bad:
@@ -327,8 +328,11 @@ class Grounder:
         rq = relations.parse(query) if mode != "explicit" else None
         if rq is not None and rq.attribute_only and f"{rq.colour} {rq.target}" in self.vocabulary():
             rq = None   # "orange cup" is a name
-        if rq is not None and relations.for_graph(rq, self.scene_graph()):   # over the scene graph
-            return self._relational(rq, query, max_results, cam_to_world, t0)
+        if rq is not None:   # about objects in relation to others: over the scene graph
+            s = time.perf_counter()
+            objs = self.scene_graph()
+            if relations.for_graph(rq, objs):
+                return self._relational(rq, objs, query, max_results, view, {"graph": time.perf_counter() - s}, t0)
         t: dict[str, float] = {}
         res = GroundingResult(False, "", query=query)
         res.timings = t

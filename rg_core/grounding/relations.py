@@ -26,13 +26,15 @@ from ..perception.colour_names import COLOUR_TERMS, colour_histogram
 from .boxes import group_boxes, robust_inliers
 from .result import GroundedObject, GroundingResult
 
-ANY = ("object", "thing", "item", "one", "objects", "things", "items", "whatever", "something", "anything", "stuff")
+ANY = ("object", "thing", "item", "one", "objects", "things", "items", "whatever", "something", "anything", "stuff",
+       "what", "which", "which one")
 SUPERLATIVES = {"biggest": "biggest", "largest": "biggest", "smallest": "smallest", "tiniest": "smallest",
                 "tallest": "tallest", "highest": "highest", "shortest": "shortest", "lowest": "lowest"}
 RELATIONS = {"closest to": "near", "nearest to": "near", "next to": "near", "near": "near", "beside": "near",
+             "right next to": "near", "right beside": "near", "just next to": "near",
              "close to": "near", "to the left of": "left", "left of": "left", "to the right of": "right",
              "right of": "right", "on the left of": "left", "on the right of": "right", "in front of": "front",
-             "behind": "behind", "between": "between",
+             "behind": "behind", "between": "between", "in between": "between",
              "on top of": "on", "on": "on", "sitting on": "on", "resting on": "on", "lying on": "on",
              "standing on": "on", "atop": "on", "under": "under", "underneath": "under", "beneath": "under",
              "below": "under", "above": "above", "over": "above"}
@@ -44,11 +46,12 @@ CLAUSE = {"that", "which", "who", "to", "for", "with", "you", "i", "can", "used"
           "of", "by", "from", "it", "goes", "fell", "put", "turns"}
 ORDINALS = {"first": 1, "1st": 1, "second": 2, "2nd": 2, "third": 3, "3rd": 3, "fourth": 4, "4th": 4, "fifth": 5,
             "5th": 5, "sixth": 6, "6th": 6, "last": -1}
-LEAD_IN = (r"^(?:please |can you |could you )?(?:show me |find |give me |point (?:to|at) |locate |where (?:is|are) "
-           r"|which is |what is |pick up |grab |get me |hand me |see )?")
+LEAD_IN = (r"^(?:can you |could you )?(?:show me |find |give me |point (?:to|at) |locate |where (?:is|are) "
+           r"|where's |which is |what is |what's |pick up |grab |get me |hand me |see )?")
 NEAR_GAP = 0.10        # metres between two objects' boxes that still count as near (counting, "all")
 CAMERA_WORDS = ("me", "the camera", "camera", "you", "the robot", "us")
 SAME_OBJECT = 0.5      # answers sharing this share of the smaller one's Gaussians are one object
+MIN_GAUSSIANS = 5      # fewer Gaussians are a speck, not an object
 
 
 @dataclass
@@ -91,8 +94,11 @@ def _nth(n: int) -> str:
 
 
 def _strip(phrase: str) -> str:
-    p = re.sub(r"^(the|a|an|any|all( the)?)\s+", "", phrase.strip(" ?.!,"))
-    return re.sub(r"\s+(are there|is there|do you see|in the (scene|map|room))$", "", p).strip()
+    p = re.sub(r"^(which|what|whichever|whatever)\s+(?=\w+ (is|are)$|\w+$)", "", phrase.strip(" ?.!,"))
+    p = re.sub(r"\s+(is|are)$", "", p)
+    p = re.sub(r"^(the|a|an|any|all( the)?)\s+", "", p)
+    return re.sub(r"\s+(are there|is there|(?:do|can) you (?:see|find)|do you have|you can see|"
+                  r"(?:are |is )?in the (scene|map|room))$", "", p).strip()
 
 
 def _target(phrase: str) -> tuple[str, str]:
@@ -103,7 +109,14 @@ def _target(phrase: str) -> tuple[str, str]:
     return ("" if name in ANY else _singular(name)), colour
 
 
+IRREGULAR = {"knives": "knife", "leaves": "leaf", "shelves": "shelf", "halves": "half", "loaves": "loaf",
+             "mice": "mouse", "people": "person", "children": "child", "teeth": "tooth", "feet": "foot"}
+
+
 def _singular(name: str) -> str:
+    head, _, last = name.rpartition(" ")
+    if last in IRREGULAR:
+        return f"{head} {IRREGULAR[last]}".strip()
     if name.endswith("ies"):
         return name[:-3] + "y"
     if name.endswith(("ches", "shes", "xes", "ses")):
@@ -113,11 +126,13 @@ def _singular(name: str) -> str:
 
 def _relation(text: str) -> Relational | None:
     """'cups (that are) next to the laptop' -> Relational, or None."""
-    m = re.fullmatch(r"(?P<t>.+?) (?:(?:that|which) (?:is|are) |(?:is|are) )?(?P<r>" + _REL_RE +
+    m = re.fullmatch(r"(?P<t>.+?) (?:(?:that|which) )?(?:(?:is|are|sits|sit|lies|lie|stands|stand|rests|rest)"
+                     r"(?: sitting| lying| standing| resting)? )?(?P<r>" + _REL_RE +
                      r") (?P<a>.+?)(?: and (?P<b>.+))?", text)
     if not m:
         return None
-    t, c = _target(m["t"])
+    sup = re.match(r"(?:the |a |an )?(" + "|".join(SUPERLATIVES) + r") ", m["t"])   # "the biggest cup on the table"
+    t, c = _target(m["t"][sup.end():] if sup else m["t"])
     rel = RELATIONS[m["r"]]
     anchors = [_strip(m["a"])] + ([_strip(m["b"])] if m["b"] else [])
     if rel == "between" and len(anchors) != 2:
@@ -131,13 +146,17 @@ def _relation(text: str) -> Relational | None:
         return Relational(t, c, superlative="nearest_camera")
     if not all(anchors):
         return None
-    return Relational(t, c, rel, [_singular(a) for a in anchors])
+    return Relational(t, c, rel, [_singular(a) for a in anchors], superlative=SUPERLATIVES[sup[1]] if sup else "")
 
 
 def parse(query: str) -> Relational | None:
     """A relational query, or None when the query is a plain name or description."""
     q = " ".join(query.lower().split()).strip(" ?.!")
+    q = re.sub(r"^please,? |,? please$", "", q).strip(" ?.!,")
     q = re.sub(LEAD_IN, "", q)
+    q = re.sub(r"^(?:what's|whats|what|which one is|which)\s+(?=(?:(?:is|are) )?(?:" + _REL_RE + r") )", "", q)
+    if re.match(r"(?:(?:is|are) )?(?:" + _REL_RE + r") ", q):   # "what's next to the X": any object
+        q = "object " + q
     m = re.fullmatch(r"(?:how many|count(?: the)?) (?P<t>.+)", q)
     if m:
         rest = _strip(m["t"])
@@ -197,6 +216,7 @@ class SceneObject:
     def to_json(self) -> dict:
         return {"name": self.name, "names": [[n, round(c, 3)] for n, c in self.names], "colour": self.colour,
                 "centre": self.centre.round(4).tolist(), "extent": np.asarray(self.obj.obb_extent).round(4).tolist(),
+                "aabb": [np.asarray(self.obj.aabb_min).round(4).tolist(), np.asarray(self.obj.aabb_max).round(4).tolist()],
                 "gaussians": len(self.obj.gaussian_ids)}
 
 
@@ -219,8 +239,8 @@ def build_graph(g, names: list[str]) -> list[SceneObject]:
     gs = g.mapper.gaussians
     for name in dict.fromkeys(names):
         res = g._ground(name, "explicit", 1)
-        if not res.success:   # absent, or not sure (below the calibrated threshold): not in the graph
-            continue
+        if not res.success or len(res.objects[0].gaussian_ids) < MIN_GAUSSIANS:
+            continue   # absent, not sure (below the calibrated threshold) or a stray speck: not in the graph
         o = res.objects[0]
         ids = set(o.gaussian_ids.tolist())
         home = next((s for s in objs if len(ids & set(s.obj.gaussian_ids.tolist()))
@@ -251,13 +271,10 @@ def _is_a(n: str, name: str) -> bool:
 
 
 def for_graph(rq: Relational, objs: list[SceneObject]) -> bool:
-    """Whether the graph should answer `rq`: always for counting, "all", superlatives and ordinals;
-    a relation or a colour only when the target is any object or one the map holds. Otherwise the
-    phrase is a description ("small metal scoop on a handle", "the green plastic beaker") and takes
-    the usual path."""
-    if rq.count or rq.every or rq.superlative or rq.ordinal or not rq.target:
-        return True
-    return bool(_match(objs, rq.target))
+    """Whether the graph should answer `rq`: counting always (none is an answer); anything else when
+    the target is any object or one the map holds. Otherwise the phrase is a description ("small metal
+    scoop on a handle", "the biggest squeezing tool, with a long bar") and takes the usual path."""
+    return rq.count or not rq.target or bool(_match(objs, rq.target))
 
 
 def _match(objs: list[SceneObject], name: str, colour: str = "") -> list[SceneObject]:
@@ -314,6 +331,38 @@ def _box_gap(a: SceneObject, b: SceneObject) -> float:
     return float(np.linalg.norm(np.maximum(lo, 0.0)))
 
 
+def _frame(up: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit up and two horizontal axes."""
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    e1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    return up, e1, np.cross(up, e1)
+
+
+def graph_relations(objs: list[SceneObject], up: np.ndarray) -> list[tuple[int, str, int, float]]:
+    """The graph's edges (subject, "on" | "near", object, box distance m): i on j when it rests on
+    j's top over j's footprint; near when their boxes are within NEAR_GAP (listed once, i < j)."""
+    geo = [_Geometry(o, *_frame(up)) for o in objs]
+    out = []
+    for i, a in enumerate(objs):
+        for j, b in enumerate(objs):
+            if i == j:
+                continue
+            gap = _box_gap(a, b)
+            if _vertical("on", geo[i], geo[j]):
+                out.append((i, "on", j, gap))
+            elif i < j and gap <= NEAR_GAP and not _vertical("on", geo[j], geo[i]):
+                out.append((i, "near", j, gap))
+    return out
+
+
+def graph_json(objs: list[SceneObject], up: np.ndarray) -> dict:
+    """The graph as JSON (`rg graph --json`): objects, up and relations by object index."""
+    return {"up": np.round(up, 4).tolist(), "objects": [o.to_json() for o in objs],
+            "relations": [{"subject": i, "predicate": p, "object": j, "distance": round(d, 4)}
+                          for i, p, j, d in graph_relations(objs, up)]}
+
+
 def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, camera: str,
            max_results: int, query: str, up: np.ndarray | None = None) -> GroundingResult:
     """Resolve a parsed query over the graph's objects. `up` [3]: the map's up direction (None: the
@@ -339,11 +388,8 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
     c2w = np.asarray(cam_to_world, np.float64)
     w2c = np.linalg.inv(c2w)
     cam = lambda p: w2c[:3, :3] @ p + w2c[:3, 3]                                  # noqa: E731 - world -> camera
-    up = np.asarray(up if up is not None else -c2w[:3, 1], np.float64)
-    up = up / np.linalg.norm(up)
-    e1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    geo = {id(o): _Geometry(o, up, e1, np.cross(up, e1)) for o in objs}
+    frame = _frame(up if up is not None else -c2w[:3, 1])
+    geo = {id(o): _Geometry(o, *frame) for o in objs}
     G = lambda o: geo[id(o)]                                                        # noqa: E731
     ref = [f[0] for _, f in anchors]
     point = (ref[0].centre + ref[1].centre) / 2 if rq.relation == "between" else ref[0].centre if ref else None
@@ -354,7 +400,7 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
                 "front": lambda o: cam(o.centre)[2] < pc[2], "behind": lambda o: cam(o.centre)[2] > pc[2],
                 **{r: (lambda o, r=r: _vertical(r, G(o), G(ref[0]))) for r in ("on", "above", "under")}
                 }.get(rq.relation)
-        if keep is None and (rq.count or rq.every):   # near / between as a set: within NEAR_GAP of the anchor(s)
+        if keep is None and (rq.count or rq.every or rq.superlative):   # near / between as a set: within NEAR_GAP
             keep = lambda o: all(_box_gap(o, r) <= NEAR_GAP for r in ref)                # noqa: E731
         if keep is not None:
             cands = [o for o in cands if keep(o)]

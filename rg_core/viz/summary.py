@@ -44,3 +44,17 @@ def demo_summary(result: dict) -> str:
     if secs:
         lines.append("seconds:       " + ", ".join(f"{k} {float(v):.1f}" for k, v in secs.items()))
     return "\n".join(lines)
+
+
+def graph_summary(result: dict) -> str:
+    """What `rg graph` prints: one line per object, then the on / near relations."""
+    objs = result["objects"]
+    lines = [f"{result['map']}: {len(objs)} objects (up {result['up']})"]
+    for i, o in enumerate(objs):
+        also = ", ".join(f"{n} {c:.2f}" for n, c in o["names"][1:])
+        size = " x ".join(f"{100 * v:.0f}" for v in o["extent"])
+        lines.append(f"  [{i}] {o['name']} {o['names'][0][1]:.2f}{f' (also {also})' if also else ''}: {o['colour']}, "
+                     f"centre ({', '.join(f'{v:.2f}' for v in o['centre'])}) m, size {size} cm, {o['gaussians']} Gaussians")
+    lines += [f"  {objs[r['subject']]['name']} {r['predicate']} {objs[r['object']]['name']} ({r['distance']:.2f} m)"
+              for r in result["relations"]]
+    return "\n".join(lines)
