@@ -320,8 +320,11 @@ class MapWorker:
         if not self._acquire(timeout):
             return GroundingResult(False, f"map busy for {timeout:.1f} s (mapping); try again", query=query)
         try:
-            return self._ensure_grounder().ground(query, mode=mode, max_results=max_results, cam_to_world=cam_to_world,
-                                                  camera="the robot's current camera")
+            res = self._ensure_grounder().ground(query, mode=mode, max_results=max_results, cam_to_world=cam_to_world,
+                                                 camera="the robot's current camera")
+            for o in res.objects if res.success else []:   # what was just grounded survives the map's budget
+                self.mapper.protect(o.aabb_min, o.aabb_max)
+            return res
         except ImportError as exc:   # a stage of the pipeline (reasoner, text encoder) has not landed
             self.log.error("grounding '%s': %s", query[:80], exc)
             return GroundingResult(False, f"grounding not available: {exc}", query=query)

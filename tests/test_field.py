@@ -179,6 +179,14 @@ def test_new_gaussians_start_from_neighbours_and_pruning_keeps_rows(synth_scene)
     mapper.totals["pruned"] += int((~keep).sum())
     f.sync()
     assert f.latents.shape == (len(g), 32) and torch.equal(f.latents, lat[keep])
+    # Eviction at the map's bound (Mapper.evict) is followed the same way.
+    lat, means = f.latents.clone(), g.means.detach().clone()
+    kf = mapper.keyframes[0]
+    n = mapper.evict(len(g) // 4, kf.K, kf.cam_to_world, *kf.size)
+    assert n > 0
+    f.sync()
+    idx = torch.cdist(g.means.detach().double(), means.double()).argmin(1)
+    assert f.latents.shape == (len(g), 32) and torch.equal(f.latents, lat[idx])
 
 
 def test_training_follows_a_growing_map_and_pca_refits(synth_scene):

@@ -7,6 +7,7 @@ import torch
 
 from rg_core.config import MapConfig
 from rg_core.eval.mapping import evaluate_views
+from rg_core.geometry.conventions import project
 from rg_core.map.frames import FrameError
 from rg_core.map.mapper import Mapper
 from rg_core.map.run import stream_frames
@@ -72,11 +73,50 @@ def test_second_pass_barely_grows_the_map(synth_scene):
 
 
 def test_memory_bound_reports_dropped(synth_scene):
-    mapper = Mapper(MapConfig(width=160, iters_per_keyframe=2, max_gaussians=300))
+    mapper = Mapper(MapConfig(width=160, iters_per_keyframe=2, max_gaussians=300, evict=False))
     results = [mapper.add_frame(*frame_args(f)) for f in synth_scene.train[:4]]
     assert len(mapper.gaussians) <= 300
     assert sum(r.dropped for r in results) > 0 and mapper.stats()["dropped"] == sum(r.dropped for r in results)
     assert mapper.optim.m["means"].shape[0] == len(mapper.gaussians)  # optimiser state follows
+
+
+def test_memory_bound_evicts_for_a_new_area_and_spares_protected_boxes(synth_scene):
+    """At the bound, a keyframe's seeds replace Gaussians it does not see: a second area (the scene
+    again, 5 m away) gets mapped where dropping leaves it a hole; the map stays under the bound, and
+    Gaussians in a protected box of the first area survive."""
+    shift = np.eye(4)
+    shift[0, 3] = 5.0
+    area_a = [frame_args(f) for f in synth_scene.train[:3]]
+    area_b = [(rgb, d, K, shift @ c2w, stamp + 100.0) for rgb, d, K, c2w, stamp in area_a]
+    alpha, bound = {}, 500
+    for evict in (False, True):
+        mapper = Mapper(MapConfig(width=160, iters_per_keyframe=2, max_gaussians=bound, evict=evict))
+        for args in area_a:
+            mapper.add_frame(*args)
+        for args in area_b:
+            mapper.add_frame(*args)
+            assert len(mapper.gaussians) <= bound
+        rgb, _, K, c2w, _ = area_b[-1]
+        alpha[evict] = float(mapper.render(K, c2w, rgb.shape[1], rgb.shape[0]).alpha.mean())
+    assert mapper.stats()["evicted"] > 0 and mapper.optim.m["means"].shape[0] == len(mapper.gaussians)
+    assert alpha[True] > alpha[False] + 0.1, alpha
+    # the rule itself: of area A's map, evict half for a camera looking at area A's first view
+    mapper = Mapper(MapConfig(width=160, iters_per_keyframe=2))
+    for args in area_a:
+        mapper.add_frame(*args)
+    pts = mapper.gaussians.means.detach().numpy().copy()
+    lo, hi = np.percentile(pts, 30, 0), np.percentile(pts, 60, 0)
+    mapper.protect(lo, hi, margin=0.0)
+    rgb, _, K, c2w, _ = area_a[1]
+    uv, z = project(pts.astype(np.float64), K, c2w)
+    seen = (z > mapper.cfg.near) & (uv[:, 0] >= 0) & (uv[:, 0] < rgb.shape[1]) & (uv[:, 1] >= 0) & (uv[:, 1] < rgb.shape[0])
+    spared = seen | ((pts >= lo) & (pts <= hi)).all(1)
+    n = mapper.evict(len(pts), K, c2w, rgb.shape[1], rgb.shape[0])
+    left = {tuple(p) for p in mapper.gaussians.means.detach().numpy()}
+    assert n == int((~spared).sum()) > 0 and all(tuple(p) in left for p in pts[spared])
+    assert mapper.optim.m["means"].shape[0] == len(mapper.gaussians)
+    with pytest.raises(ValueError, match="finite"):
+        mapper.protect(np.array([0, 0, np.nan]), np.ones(3))
 
 
 @pytest.mark.parametrize("mutate, message", [

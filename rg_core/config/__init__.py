@@ -107,7 +107,11 @@ class MapConfig:
     window: int = 8
     """Recent keyframes optimised together (older ones are revisited at random too)."""
     max_gaussians: int = 300000
-    """Memory bound: seeds beyond it are dropped and reported."""
+    """Memory bound on the map's Gaussians (what happens at it: `evict`)."""
+    evict: bool = True
+    """At max_gaussians, a keyframe's seeds replace the least useful Gaussians (Mapper.evict's rule:
+    only ones its camera does not see; low opacity x far x old first; never inside a protected box,
+    e.g. the last grounded objects); False: the seeds are dropped and reported."""
     seed_stride: int = 4
     """One new Gaussian per stride x stride block of unexplained pixels (fewer, larger Gaussians
     converge in fewer iterations: 4 beat 2 and 3 on both test scenes at equal time)."""

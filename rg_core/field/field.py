@@ -77,7 +77,9 @@ class FeatureField:
     # ---------------------------------------------------------------------------- map following
 
     def _pruned_count(self):
-        return getattr(self.mapper, "totals", {}).get("pruned")
+        """Gaussians removed from the map so far (pruned or evicted), None when unknown."""
+        t = getattr(self.mapper, "totals", {})
+        return None if "pruned" not in t else t["pruned"] + t.get("evicted", 0)
 
     def _neighbour_latents(self, points: torch.Tensor) -> torch.Tensor:  # [Q, 3] -> [Q, D]
         from scipy.spatial import cKDTree

@@ -3,8 +3,8 @@
 Per frame: render the map from the frame's pose; pixels the map does not explain (low alpha or
 depth error) decide whether the frame is a keyframe; a keyframe seeds Gaussians only there and is
 optimised with a window of keyframes for an iteration budget, its first iterations at half resolution
-(coarse to fine); then transparent, oversized or broken Gaussians are pruned and the map is kept under
-`max_gaussians`.
+(coarse to fine); then transparent, oversized or broken Gaussians are pruned. The map stays under
+`max_gaussians`: at the bound, new seeds replace the least useful Gaussians (`evict`).
 """
 from __future__ import annotations
 
@@ -81,7 +81,8 @@ class Mapper:
             "opacity_logits": lr.lr_opacity, "colors": lr.lr_colors, "background": lr.lr_colors})
         self.frames_seen = 0
         self.last_stamp: float | None = None
-        self.totals = {"added": 0, "dropped": 0, "pruned": 0, "out_of_order": 0, "keyframe_iters": 0}
+        self.totals = {"added": 0, "dropped": 0, "pruned": 0, "evicted": 0, "out_of_order": 0, "keyframe_iters": 0}
+        self.protected: list[tuple[np.ndarray, np.ndarray]] = []   # boxes (lo, hi) eviction never touches
         self.seconds = {"prepare": 0.0, "check": 0.0, "seed": 0.0, "optimise": 0.0, "prune": 0.0, "refine": 0.0}
         self._rng = torch.Generator().manual_seed(self.cfg.seed)
         self.supervision = None  # perception.supervision.SupervisionSet, once computed
@@ -203,6 +204,8 @@ class Mapper:
             vs, us = vs[first], us[first]
         n_cand = len(vs)
         room = max(c.max_gaussians - len(self.gaussians), 0)
+        if n_cand > room and c.evict:
+            room += self.evict(min(n_cand, c.max_gaussians) - room, fr.K, fr.cam_to_world, *unexplained.shape[::-1])
         if n_cand > room:
             pick = torch.randperm(n_cand, generator=self._rng)[:room].sort().values
             vs, us = vs[pick], us[pick]
@@ -316,6 +319,49 @@ class Mapper:
         loss.backward()
         self.optim.step({k: p.grad for k, p in params.items()})
         return float(loss.detach())
+
+    def protect(self, lo: np.ndarray, hi: np.ndarray, margin: float = 0.02, keep_last: int = 16) -> None:
+        """Never evict the Gaussians inside the box lo..hi [3] (+ margin, metres): e.g. an object that
+        was just grounded. The last `keep_last` boxes are kept."""
+        lo, hi = np.asarray(lo, np.float64) - margin, np.asarray(hi, np.float64) + margin
+        if lo.shape != (3,) or hi.shape != (3,) or not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+            raise ValueError(f"protect: a box needs finite lo, hi [3], got {lo}, {hi}")
+        self.protected = (self.protected + [(lo, hi)])[-keep_last:]
+
+    @torch.no_grad()
+    def evict(self, n: int, K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int) -> int:
+        """Remove up to `n` Gaussians the camera (K [3, 3], cam_to_world [4, 4], image size) does not
+        see, the least useful first: the lowest opacity x nearness to the camera (median distance /
+        (median + distance)) x recency (0.5 + 0.5 rank / N: the map keeps its Gaussians in the order
+        they were added). Gaussians in view and in protected boxes stay. Returns how many went."""
+        from ..geometry.conventions import project
+
+        g = self.gaussians
+        if n <= 0 or not len(g):
+            return 0
+        means = g.means.detach()
+        pts = means.double().numpy()
+        uv, z = project(pts, np.asarray(K, np.float64), np.asarray(cam_to_world, np.float64))
+        with np.errstate(invalid="ignore"):
+            seen = (z > self.cfg.near) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+        d = torch.from_numpy(np.linalg.norm(pts - np.asarray(cam_to_world, np.float64)[:3, 3], axis=1)).float()
+        med = d.median().clamp(min=1e-3)
+        value = g.opacities.detach() * med / (med + d) * (0.5 + 0.5 * torch.arange(len(g)) / len(g))
+        value = torch.nan_to_num(value, nan=-1.0)   # broken Gaussians first
+        value[torch.from_numpy(seen)] = float("inf")
+        for lo, hi in self.protected:
+            lo_t, hi_t = torch.as_tensor(lo, dtype=means.dtype), torch.as_tensor(hi, dtype=means.dtype)
+            value[((means >= lo_t) & (means <= hi_t)).all(1)] = float("inf")
+        order = torch.argsort(value)[:n]
+        order = order[torch.isfinite(value[order])]
+        if not len(order):
+            return 0
+        keep = torch.ones(len(g), dtype=torch.bool)
+        keep[order] = False
+        g.keep(keep)
+        self.optim.keep(keep)
+        self.totals["evicted"] = self.totals.get("evicted", 0) + len(order)
+        return len(order)
 
     def _prune(self) -> int:
         g, c = self.gaussians, self.cfg
