@@ -250,9 +250,36 @@ def build_graph(g, names: list[str]) -> list[SceneObject]:
             home.names.sort(key=lambda nc: -nc[1])
             continue
         keep = o.gaussian_ids[robust_inliers(gs.means.detach().numpy()[o.gaussian_ids])]
-        colour = colour_term((gs.colors.detach()[keep].clamp(0, 1) * 255).round().byte().numpy()) if len(keep) else ""
-        objs.append(SceneObject([(name, float(res.confidence))], o, colour))
+        px = observed_pixels(g.mapper, gs.means.detach().numpy()[keep])
+        if not len(px) and len(keep):   # seen in no keyframe (occluded everywhere): the Gaussians' own colours
+            px = (gs.colors.detach()[keep].clamp(0, 1) * 255).round().byte().numpy()
+        objs.append(SceneObject([(name, float(res.confidence))], o, colour_term(px) if len(px) else ""))
     return objs
+
+
+def observed_pixels(mapper, points: np.ndarray, views: int = 4, tol: float = 0.02) -> np.ndarray:
+    """The keyframe pixels (uint8 [M, 3]) where `points` [N, 3] are seen: projected into every
+    keyframe, kept where the keyframe's depth agrees within tol + 2 % (not occluded), from the
+    `views` keyframes that see most of them. An object's colour is what the camera saw of it; the
+    Gaussians' own colours are a fit that blends neighbours and the background."""
+    from ..geometry.conventions import project
+
+    if not len(points):
+        return np.zeros((0, 3), np.uint8)
+    seen = []
+    for kf in mapper.keyframes:
+        w, h = kf.size
+        uv, z = project(np.asarray(points, np.float64), np.asarray(kf.K, np.float64), kf.cam_to_world)
+        with np.errstate(invalid="ignore"):
+            ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+        u, v = np.round(uv[ok]).astype(int).T
+        d = kf.depth.numpy()[v, u]
+        vis = (d > 0) & (np.abs(d - z[ok]) <= tol + 0.02 * z[ok])
+        if vis.any():
+            seen.append(kf.rgb.numpy()[v[vis], u[vis]])
+    seen.sort(key=len, reverse=True)
+    px = np.concatenate(seen[:views]) if seen else np.zeros((0, 3), np.float32)
+    return (np.clip(px, 0, 1) * 255).round().astype(np.uint8)
 
 
 def _is_a(n: str, name: str) -> bool:
