@@ -1,0 +1,214 @@
+"""A long run of the node on loopback: `rg-node` fed a looped scene by `rg-replay --loop`, a /ground
+call every few seconds, the node's memory, queue, drops and query latency sampled over time.
+
+Used by benchmarks/bench_endurance.py (>= 20,000 frames) and, short, by the test suite (1,000 frames).
+Both processes are started with this interpreter and environment; the caller sets ROS_DOMAIN_ID and
+ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclass
+class EnduranceConfig:
+    frames: int = 20000            # frames rg-replay publishes (the scene looped)
+    rate: float = 20.0             # frames per second
+    ground_period: float = 2.0     # seconds between /ground calls
+    ground_timeout: float = 60.0   # a call without a reply after this counts as unanswered
+    sample_period: float = 0.5     # seconds between memory samples
+    queries: tuple[str, ...] = ("orange", "the biggest object", "something to eat")
+    params: dict = field(default_factory=lambda: dict(
+        pose_source="topic", map_width=80, iters_per_keyframe=2, torch_threads=1, frame_queue_size=4,
+        features=True, train_slice=0.5, train_seconds_max=2.0, status_period=0.5, mask_rate=0.0,
+        map_cloud_period=0.0, min_confidence=0.0, scene_graph_period=0.0))
+
+
+def _rss_mb(pid: int) -> float | None:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        return None
+    return None
+
+
+def _write_params(path: Path, params: dict) -> Path:
+    import yaml
+
+    class NoAliases(yaml.SafeDumper):
+        def ignore_aliases(self, data):
+            return True
+
+    path.write_text(yaml.dump({"rg_node": {"ros__parameters": params}}, Dumper=NoAliases))
+    return path
+
+
+def _stop(proc: subprocess.Popen, timeout: float = 30.0) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(10)
+
+
+def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) -> dict:
+    """Run the node against `scene` (a scene folder) for cfg.frames frames; -> samples and summary."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import MultiThreadedExecutor
+    from rg_interfaces.srv import Ground
+    from tqdm import tqdm
+
+    work.mkdir(parents=True, exist_ok=True)
+    params = _write_params(work / "endurance.yaml", cfg.params)
+    env = dict(os.environ, RCUTILS_LOGGING_BUFFERED_STREAM="0")
+    from .params import INPUTS
+
+    remap = [a for name, target in INPUTS.items() for a in ("-r", f"{name}:={target}")]   # where rg-replay publishes
+    node = subprocess.Popen([sys.executable, "-m", "rg_ros.tools", "node", "--params", str(params), "--ros-args",
+                             *remap], env=env,
+                            stdout=(work / "node.log").open("w"), stderr=subprocess.STDOUT)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    probe = rclpy.create_node("rg_endurance_probe", context=ctx)
+    status: dict = {}
+
+    def on_status(msg):
+        for s in msg.status:
+            if s.name.startswith("/rg_node"):
+                vals = {}
+                for kv in s.values:
+                    try:
+                        vals[kv.key] = json.loads(kv.value)
+                    except ValueError:
+                        vals[kv.key] = kv.value
+                status.clear()
+                status.update(vals)
+
+    probe.create_subscription(DiagnosticArray, "/diagnostics", on_status, 10)
+    client = probe.create_client(Ground, "/ground")
+    executor = MultiThreadedExecutor(context=ctx)
+    executor.add_node(probe)
+    spin = threading.Thread(target=executor.spin, daemon=True)
+    spin.start()
+    samples, calls = [], []
+    replay = None
+    stop = threading.Event()
+    t0 = time.monotonic()
+    try:
+        end = time.monotonic() + 180
+        while not status and node.poll() is None and time.monotonic() < end:
+            time.sleep(0.2)
+        if node.poll() is not None or not status:
+            raise RuntimeError(f"rg-node did not come up: {(work / 'node.log').read_text()[-2000:]}")
+        replay = subprocess.Popen([sys.executable, "-m", "rg_ros.tools", "replay", str(scene), "--loop", "--count",
+                                   str(cfg.frames), "--rate", str(cfg.rate), "--wait", "60"], env=env,
+                                  stdout=(work / "replay.log").open("w"), stderr=subprocess.STDOUT)
+
+        def caller():
+            i = 0
+            if not client.wait_for_service(timeout_sec=60):
+                calls.append({"t": time.monotonic() - t0, "seconds": None, "success": False, "message": "no service"})
+                return
+            while not stop.is_set():
+                q = cfg.queries[i % len(cfg.queries)]
+                t = time.monotonic()
+                res = client.call(Ground.Request(query=q), timeout_sec=cfg.ground_timeout)
+                dt = time.monotonic() - t
+                calls.append({"t": t - t0, "query": q, "seconds": dt if res is not None else None,
+                              "success": bool(res is not None and res.success),
+                              "message": (res.message if res is not None else "no reply")[:100]})
+                i += 1
+                stop.wait(max(0.0, cfg.ground_period - dt))
+
+        ground = threading.Thread(target=caller, daemon=True)
+        ground.start()
+        bar = tqdm(total=cfg.frames, desc="endurance", unit="frame", disable=not progress, file=sys.stderr)
+        while replay.poll() is None and node.poll() is None:
+            st = dict(status)
+            samples.append({"t": time.monotonic() - t0, "rss_mb": _rss_mb(node.pid),
+                            **{k: st.get(k) for k in ("received", "mapped", "dropped", "rejected", "queue",
+                                                      "gaussians", "keyframes", "evicted")}})
+            if int(st.get("received") or 0) != bar.n:
+                bar.n = int(st.get("received") or 0)
+                bar.refresh()
+            time.sleep(cfg.sample_period)
+        bar.close()
+        time.sleep(3 * cfg.sample_period)   # the last frames in flight
+        stop.set()
+        ground.join(cfg.ground_timeout + 5)
+        crashed = node.poll() is not None
+    finally:
+        stop.set()
+        if replay is not None:
+            _stop(replay, 10)
+        _stop(node)
+        executor.shutdown(timeout_sec=5)
+        probe.destroy_node()
+        ctx.try_shutdown()
+    return {"samples": samples, "calls": calls, "crashed": crashed, "node_exit": node.returncode,
+            "summary": summarise(samples, calls, crashed)}
+
+
+def summarise(samples: list[dict], calls: list[dict], crashed: bool) -> dict:
+    """Growth of the peak RSS over the run's last half, query latency p95 of the first and last 10 %
+    of the calls, unanswered calls, frames received / dropped."""
+    rss = np.array([s["rss_mb"] for s in samples if s["rss_mb"] is not None], np.float64)
+    half = len(rss) // 2
+    peak_mid = float(rss[:max(half, 1)].max()) if len(rss) else float("nan")
+    peak_end = float(rss.max()) if len(rss) else float("nan")
+    lat = [c["seconds"] for c in calls if c["seconds"] is not None]
+    k = max(1, len(lat) // 10)
+    last = samples[-1] if samples else {}
+    return {"frames_received": last.get("received"), "frames_mapped": last.get("mapped"),
+            "frames_dropped": last.get("dropped"), "queue_max": max((s["queue"] or 0) for s in samples) if samples else 0,
+            "gaussians": last.get("gaussians"), "keyframes": last.get("keyframes"),
+            "rss_mid_mb": peak_mid, "rss_peak_mb": peak_end,
+            "rss_growth_last_half_pct": 100.0 * (peak_end - peak_mid) / peak_mid if peak_mid > 0 else float("nan"),
+            "calls": len(calls), "calls_unanswered": sum(c["seconds"] is None for c in calls),
+            "calls_answered_success": sum(c["success"] for c in calls),
+            "latency_p95_first_s": float(np.percentile(lat[:k], 95)) if lat else float("nan"),
+            "latency_p95_last_s": float(np.percentile(lat[-k:], 95)) if lat else float("nan"),
+            "crashed": crashed, "seconds": samples[-1]["t"] if samples else 0.0}
+
+
+def plot(result: dict, png: Path, title: str) -> Path:
+    """RSS, queue and drops, and query latency over time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    s, c = result["samples"], result["calls"]
+    t = [x["t"] for x in s]
+    fig, ax = plt.subplots(1, 3, figsize=(13, 3.2))
+    ax[0].plot(t, [x["rss_mb"] for x in s])
+    ax[0].set_ylabel("node RSS (MB)")
+    ax[1].plot(t, [x["queue"] or 0 for x in s], label="queue")
+    ax[1].plot(t, [x["dropped"] or 0 for x in s], label="dropped (total)")
+    ax[1].legend(fontsize=7)
+    ax[2].plot([x["t"] for x in c if x["seconds"] is not None], [x["seconds"] for x in c if x["seconds"] is not None],
+               ".", ms=3)
+    ax[2].set_ylabel("/ground latency (s)")
+    for a in ax:
+        a.set_xlabel("time (s)")
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(png, dpi=100)
+    plt.close(fig)
+    return png
