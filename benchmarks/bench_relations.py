@@ -2,10 +2,11 @@
 mIoU and colour terms on synthetic scenes, queries generated from the ground truth where the answer is
 unambiguous by a stated margin, plus hand-written free-form phrasings.
 
-    python benchmarks/bench_relations.py [--seeds 401 ... 410] [--objects 10] [--views 30]
+    python benchmarks/bench_relations.py [--seeds 411 ... 420] [--objects 10] [--same-category 3] [--views 30]
                                          [--supervision oracle default] [--json] [--record]
 
-Each scene (`rg synth`, 320x240) is mapped, supervised (oracle: ground-truth masks and names, the 3D
+Each scene (`rg synth`, 320x240, 3 of its objects sharing a category with another: several cups of
+different colours, two screwdrivers, two bowls) is mapped, supervised (oracle: ground-truth masks and names, the 3D
 part alone; default: the offline models) and asked from its first test camera. Templates (Sr3D-style):
 - near: "the object closest to the A" when A's nearest and second-nearest neighbours (object
   centres) differ by >= MARGIN; between: "the object between the A and the B" (3 per scene);
@@ -13,7 +14,8 @@ part alone; default: the offline models) and asked from its first test camera. T
   on that side by >= MARGIN (2 per scene and side);
 - superlative: biggest / smallest (box volume, 30 % apart), tallest (box height, 30 % apart), nearest
   to the camera (by >= MARGIN), over all objects or a category with >= 2 members;
-- colour: "the <colour> <category>" when the category's members have different colour terms;
+- colour: "the <colour> <category>" when the category's members have different colour terms (a
+  name that says the colour, "the blue cup", is asked too: it takes the explicit path);
 - ordinal: "the second <category> from the left" (image x apart by >= 0.05 of the focal length);
 - count: "how many <category> are there" (every category with a member, a plural a person would use);
 - all: "all the <category>" (the set must match).
@@ -154,7 +156,7 @@ def queries(scene, rng, colours: dict[str, str], cam: np.ndarray, K: np.ndarray)
             add("all", f"all the {CATEGORIES[k]}", pool, c=k, cs=CATEGORIES[k])
             terms = [colours.get(n, "").split()[-1] if colours.get(n) else "" for n in pool]
             for n, t in zip(pool, terms):
-                if t and terms.count(t) == 1 and t not in n.split():   # the name must not say the colour
+                if t and terms.count(t) == 1:
                     add("colour", f"the {t} {k}", n, c=k, k=t)
             order = sorted(pool, key=lambda n: ux[n])
             gaps = np.diff([ux[n] for n in order])
@@ -268,38 +270,44 @@ def summarise(rows: list[dict], scenes: list[dict]) -> dict:
 
 def to_rows(report: dict) -> tuple[list[dict], str]:
     out = []
+    dash = lambda v: "-" if v is None else v   # noqa: E731
     for sup, s in report["supervisions"].items():
         for kind, b in s["kinds"].items():
-            out.append({"supervision": sup, "relation": kind, "queries": b["queries"], "right_pct": b["right_pct"],
-                        "freeform": b["freeform"], "freeform_right_pct": b["freeform_right_pct"],
-                        "miou_visible": b["miou_visible"]})
-        out.append({"supervision": sup, "relation": "explicit name (baseline)", "miou_visible": s["explicit_miou_visible"]})
-    notes = "; ".join(f"{sup}: colour terms right {s['colour_right_pct']}% of {s['colour_objects']} objects, graph "
-                      f"holds {s['graph_objects']} of {s['objects']} objects, warm query median {s['warm_query_s']:.4f} s, "
-                      f"first query (builds the graph) {s['first_query_s']:.1f} s"
-                      for sup, s in report["supervisions"].items())
-    return out, (f"rg synth seeds {' '.join(map(str, report['seeds']))}, {report['objects']} objects, {report['views']} "
-                 f"views 320x240; generated queries unambiguous by {MARGIN} m / 30 %, freeform = hand-written phrasings; "
-                 f"mIoU: single-object answers, visible, test views; {notes}")
+            out.append({"supervision": sup, "relation": kind, "queries": b["queries"], "right_pct": dash(b["right_pct"]),
+                        "freeform": b["freeform"], "freeform_right_pct": dash(b["freeform_right_pct"]),
+                        "miou_visible": dash(b["miou_visible"])})
+        out.append({"supervision": sup, "relation": "explicit name (baseline)", "queries": "-", "right_pct": "-",
+                    "freeform": "-", "freeform_right_pct": "-", "miou_visible": s["explicit_miou_visible"]})
+    seeds = report["seeds"]
+    notes = "; ".join(f"{sup}: colour terms right {s['colour_right_pct']}% of {s['colour_objects']}, graph "
+                      f"{s['graph_objects']}/{s['objects']} objects, warm query {1000 * s['warm_query_s']:.1f} ms, "
+                      f"first {s['first_query_s']:.1f} s" for sup, s in report["supervisions"].items())
+    return out, (f"rg synth seeds {seeds[0]}-{seeds[-1]}, {report['objects']} objects ({report.get('same_category', 0)} "
+                 f"sharing a category), {report['views']} views; queries "
+                 f"unambiguous by {MARGIN} m / 30 %; freeform: hand-written phrasings; mIoU: single-object answers; "
+                 f"{notes}")
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", type=int, nargs="*", default=list(range(401, 411)))
+    ap.add_argument("--seeds", type=int, nargs="*", default=list(range(411, 421)))
     ap.add_argument("--objects", type=int, default=10)
+    ap.add_argument("--same-category", type=int, default=3)
     ap.add_argument("--views", type=int, default=30)
     ap.add_argument("--supervision", nargs="*", default=["oracle", "default"], choices=("oracle", "default"))
     ap.add_argument("--out", default="bench_out")
     add_output_flags(ap)
     args = ap.parse_args()
-    report = {"seeds": args.seeds, "objects": args.objects, "views": args.views, "supervisions": {}, "queries": []}
+    report = {"seeds": args.seeds, "objects": args.objects, "same_category": args.same_category, "views": args.views,
+              "supervisions": {}, "queries": []}
     with tempfile.TemporaryDirectory() as tmp:
         for sup in args.supervision:
             rows, scenes = [], []
             for seed in args.seeds:
                 d = Path(tmp) / f"seed{seed}"
                 if not d.exists():
-                    generate_scene(d, SynthConfig(views=args.views, seed=seed, objects=args.objects),
+                    generate_scene(d, SynthConfig(views=args.views, seed=seed, objects=args.objects,
+                                                  same_category=args.same_category),
                                    default_objects_dir(), progress=False)
                 rs, sc = run_scene(d, seed, sup)
                 rows += [{**r, "supervision": sup} for r in rs]

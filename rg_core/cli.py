@@ -41,7 +41,7 @@ def cmd_synth(args, cfg) -> dict:
 
     s = cfg.synth
     over = {k: v for k, v in (("views", args.views), ("objects", args.objects), ("seed", args.seed),
-                              ("workers", args.workers)) if v is not None}
+                              ("workers", args.workers), ("same_category", args.same_category)) if v is not None}
     if args.size is not None:
         over["width"], over["height"] = args.size
     s = dataclasses.replace(s, **over)
@@ -299,6 +299,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=_size, help="WxH, e.g. 320x240")
     p.add_argument("--seed", type=int)
     p.add_argument("--objects", type=_positive, help="number of objects on the table")
+    p.add_argument("--same-category", type=int, help="how many of them share a category with another (several cups)")
     p.add_argument("--objects-dir", help="folder of <name>/model.urdf meshes (default: ../shared/data/objects)")
     p.add_argument("--workers", type=_positive, help="render processes")
     common(p)

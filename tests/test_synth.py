@@ -143,3 +143,19 @@ def test_every_fallback_object_loads_and_rests_on_the_table():
 def test_bad_generator_arguments(tmp_path):
     with pytest.raises(ValueError, match="views >= 1"):
         generate_scene(tmp_path / "x", small_synth_config(views=0), None, progress=False)
+
+
+def test_same_category_picks_repeats_under_other_names():
+    """synth.same_category: several cups of different colours (what "the red cup", "the second cup
+    from the left" need); 0 keeps one object per category (and the scenes made before)."""
+    from collections import Counter
+
+    from rg_core.synth.generator import choose_objects, default_objects_dir
+
+    for seed in range(10):
+        plain = choose_objects(10, np.random.default_rng(seed), default_objects_dir())
+        assert len({e.category for e, _ in plain}) == 10
+        rep = choose_objects(10, np.random.default_rng(seed), default_objects_dir(), same_category=3)
+        names = [e.name for e, _ in rep]
+        assert len(rep) == 10 and len(set(names)) == 10, names            # repeats come under other names
+        assert sum(n - 1 for n in Counter(e.category for e, _ in rep).values()) >= 1, names

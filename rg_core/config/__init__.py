@@ -33,6 +33,10 @@ class SynthConfig:
     """Image height in pixels."""
     objects: int = 7
     """Number of objects dropped on the table."""
+    same_category: Annotated[int, Interval(ge=0)] = 0
+    """Of those, how many share a category with another one (several cups of different colours,
+    two screwdrivers: what "the red cup" and "the second cup from the left" need); 0: one object per
+    category while categories last."""
     seed: int = 0
     """Random seed: same seed, same scene, byte for byte."""
     fov_y_deg: float = 60.0

@@ -36,8 +36,11 @@ def default_objects_dir() -> Path | None:
     return None
 
 
-def choose_objects(n: int, rng: np.random.Generator, objects_dir: Path | None) -> list[tuple[CatalogueEntry, str]]:
-    """Pick n catalogue entries (urdf path per entry), one per category while categories last."""
+def choose_objects(n: int, rng: np.random.Generator, objects_dir: Path | None,
+                   same_category: int = 0) -> list[tuple[CatalogueEntry, str]]:
+    """Pick n catalogue entries (urdf path per entry), one per category while categories last, but
+    `same_category` of them from categories already picked, under other names (as far as the picked
+    categories have more: cups, bowls, screwdrivers)."""
     pool: list[tuple[CatalogueEntry, str]] = []
     if objects_dir is not None and objects_dir.is_dir():
         pool = [(e, str(objects_dir / e.folder / "model.urdf")) for e in SHARED_OBJECTS
@@ -46,10 +49,22 @@ def choose_objects(n: int, rng: np.random.Generator, objects_dir: Path | None) -
         pool = [(e, e.folder) for e in PYBULLET_OBJECTS]
     order = rng.permutation(len(pool))
     chosen, seen = [], set()
+    distinct = n - min(same_category, max(n - 1, 0))
     for i in order:  # distinct categories first ...
-        if len(chosen) < n and pool[i][0].category not in seen:
+        if len(chosen) < distinct and pool[i][0].category not in seen:
             chosen.append(pool[i])
             seen.add(pool[i][0].category)
+    names_of = lambda c: {e.name for e, _ in pool if e.category == c}                 # noqa: E731
+    if same_category and chosen and all(len(names_of(e.category)) < 2 for e, _ in chosen):
+        multi = next((i for i in order if len(names_of(pool[i][0].category)) >= 2), None)
+        if multi is not None:   # make room for repeats: the last distinct pick becomes a category with several
+            seen.discard(chosen[-1][0].category)
+            chosen[-1] = pool[multi]
+            seen.add(pool[multi][0].category)
+    for i in order:  # ... the requested repeats of categories already there (under another name) ...
+        if (same_category and len(chosen) < n and pool[i][0].category in seen
+                and pool[i][0].name not in {e.name for e, _ in chosen}):
+            chosen.append(pool[i])
     for i in order:  # ... then repeats if the scene asks for more objects than categories
         if len(chosen) >= n:
             break
@@ -138,7 +153,7 @@ def generate_scene(out: str | Path, cfg: SynthConfig, objects_dir: Path | None =
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(cfg.seed)
-    chosen = choose_objects(cfg.objects, rng, objects_dir)
+    chosen = choose_objects(cfg.objects, rng, objects_dir, cfg.same_category)
     placed = settle([(urdf, e.scale) for e, urdf in chosen], rng, cfg.spread, cfg.settle_steps)
 
     lo, hi = table_top()
