@@ -44,18 +44,38 @@ def _rss_mb(pid: int) -> float | None:
     return None
 
 
-def _write_params(path: Path, params: dict) -> Path:
+def write_params(path: Path, params: dict, name: str = "rg_node") -> Path:
+    """A ros__parameters file for node `name` (rcl's parser refuses YAML aliases: repeated values are
+    written out)."""
     import yaml
 
     class NoAliases(yaml.SafeDumper):
         def ignore_aliases(self, data):
             return True
 
-    path.write_text(yaml.dump({"rg_node": {"ros__parameters": params}}, Dumper=NoAliases))
+    path.write_text(yaml.dump({name: {"ros__parameters": params}}, Dumper=NoAliases))
     return path
 
 
-def _stop(proc: subprocess.Popen, timeout: float = 30.0) -> None:
+def status_values(msg) -> dict[str, dict]:
+    """A /diagnostics message -> {node name: {key: value}}: values JSON-decoded where they are JSON,
+    plus '_t' (when it arrived, monotonic) and '_message'."""
+    out = {}
+    for s in msg.status:
+        vals = {}
+        for kv in s.values:
+            try:
+                vals[kv.key] = json.loads(kv.value)
+            except ValueError:
+                vals[kv.key] = kv.value
+        vals["_t"], vals["_message"] = time.monotonic(), s.message
+        out[s.name.split(":")[0]] = vals
+    return out
+
+
+def stop_process(proc: subprocess.Popen, timeout: float = 30.0) -> int | None:
+    """SIGINT, wait, then kill (SIGTERM right after a reply can hang a server); the exit code, None
+    when it had to be killed."""
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
         try:
@@ -63,6 +83,8 @@ def _stop(proc: subprocess.Popen, timeout: float = 30.0) -> None:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait(10)
+            return None
+    return proc.returncode
 
 
 def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) -> dict:
@@ -74,7 +96,7 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
     from tqdm import tqdm
 
     work.mkdir(parents=True, exist_ok=True)
-    params = _write_params(work / "endurance.yaml", cfg.params)
+    params = write_params(work / "endurance.yaml", cfg.params)
     env = dict(os.environ, RCUTILS_LOGGING_BUFFERED_STREAM="0")
     from .params import INPUTS
 
@@ -88,16 +110,10 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
     status: dict = {}
 
     def on_status(msg):
-        for s in msg.status:
-            if s.name.startswith("/rg_node"):
-                vals = {}
-                for kv in s.values:
-                    try:
-                        vals[kv.key] = json.loads(kv.value)
-                    except ValueError:
-                        vals[kv.key] = kv.value
-                status.clear()
-                status.update(vals)
+        vals = status_values(msg).get("/rg_node")
+        if vals is not None:
+            status.clear()
+            status.update(vals)
 
     probe.create_subscription(DiagnosticArray, "/diagnostics", on_status, 10)
     client = probe.create_client(Ground, "/ground")
@@ -155,8 +171,8 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
     finally:
         stop.set()
         if replay is not None:
-            _stop(replay, 10)
-        _stop(node)
+            stop_process(replay, 10)
+        stop_process(node)
         executor.shutdown(timeout_sec=5)
         probe.destroy_node()
         ctx.try_shutdown()

@@ -39,6 +39,7 @@ from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from rg_ros import convert as cv  # noqa: E402
+from rg_ros import endurance  # noqa: E402
 from rg_ros.params import INPUTS  # noqa: E402
 from rg_ros.replay import frame_messages  # noqa: E402
 
@@ -56,15 +57,7 @@ def ros_args(remap: dict[str, str]) -> list[str]:
 
 
 def write_params(path: Path, name: str, **params) -> Path:
-    """A ros__parameters file (rcl's parser refuses YAML aliases: repeated values are written out)."""
-    import yaml
-
-    class NoAliases(yaml.SafeDumper):
-        def ignore_aliases(self, data):
-            return True
-
-    path.write_text(yaml.dump({name: {"ros__parameters": params}}, Dumper=NoAliases))
-    return path
+    return endurance.write_params(path, params, name)
 
 
 def start(args: list[str], log: Path, **env) -> subprocess.Popen:
@@ -72,17 +65,7 @@ def start(args: list[str], log: Path, **env) -> subprocess.Popen:
                             stdout=log.open("w"), stderr=subprocess.STDOUT)
 
 
-def stop(proc: subprocess.Popen, timeout: float = 30.0) -> int | None:
-    """SIGINT, wait, then kill (the notes: SIGTERM right after a reply can hang a server)."""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(10)
-            return None
-    return proc.returncode
+stop = endurance.stop_process
 
 
 def is_settled(st: dict) -> bool:
@@ -90,20 +73,7 @@ def is_settled(st: dict) -> bool:
     return st["mapped"] + st["rejected"] + st["dropped"] == st["received"] and st["queue"] == 0
 
 
-def status_values(msg) -> dict[str, dict]:
-    """A /diagnostics message -> {node name: {key: value}}: values JSON-decoded where they are JSON,
-    plus '_t' (when it arrived, monotonic) and '_message'."""
-    out = {}
-    for s in msg.status:
-        vals = {}
-        for kv in s.values:
-            try:
-                vals[kv.key] = json.loads(kv.value)
-            except ValueError:
-                vals[kv.key] = kv.value
-        vals["_t"], vals["_message"] = time.monotonic(), s.message
-        out[s.name.split(":")[0]] = vals
-    return out
+status_values = endurance.status_values
 
 
 def wait_for(cond, timeout: float, what: str):
