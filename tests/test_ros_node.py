@@ -7,7 +7,6 @@ start-up, sees images without CameraInfo, then maps and is stopped with SIGINT (
 """
 from __future__ import annotations
 
-import json
 import os
 import random
 import signal
