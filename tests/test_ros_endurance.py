@@ -1,4 +1,4 @@
-"""The node for 1,500 looped frames with a /ground call every 2 s (the short version of
+"""The node for 2,000 looped frames with a /ground call every 2 s (the short version of
 benchmarks/bench_endurance.py): no crash, every call answered, peak memory flat over the last half.
 Query latency over time is reported by the benchmark, not asserted here (it depends on CPU load)."""
 from __future__ import annotations
@@ -25,7 +25,7 @@ def test_long_run_keeps_memory_flat_and_answers_every_call(tmp_path):
     scene = tmp_path / "scene"
     subprocess.run([sys.executable, "-m", "rg_core.cli", "synth", str(scene), "--views", "8", "--size", "160x120",
                     "--seed", "5", "--objects", "3", "--json", "--quiet"], check=True, capture_output=True, timeout=300)
-    r = run(scene, tmp_path / "work", EnduranceConfig(frames=1500, rate=25.0), progress=False)
+    r = run(scene, tmp_path / "work", EnduranceConfig(frames=2000, rate=25.0), progress=False)
     s = r["summary"]
     print(s)
     assert plot(r, tmp_path / "endurance.png", "test").is_file()
