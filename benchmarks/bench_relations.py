@@ -165,7 +165,7 @@ def queries(scene, rng, colours: dict[str, str], cam: np.ndarray, K: np.ndarray)
                     add("ordinal", f"the {ORDINAL[i + 1]} {k} from the left", order[i], c=k, order=order)
                 add("ordinal", f"the first {k} from the right", order[-1], c=k, order=order)
     a = names[int(rng.integers(len(names)))]
-    add("count", f"how many {_plural(a)} are there", 1, c=a, cs=_plural(a))
+    add("count", f"how many {_plural(a)} are there", sum(_is_a(n, a) for n in names), c=a, cs=_plural(a))
     out = [{**q, "template": "generated"} for qs in gen.values() for q in qs]
     return out + freeform(gen, rng)
 

@@ -204,3 +204,28 @@ def test_relational_descriptions_of_absent_things_take_the_usual_path(grounder):
     long = "the cup next to the " + "very " * 400 + "big bowl"
     r = grounder.ground(long)
     assert not r.success and "characters" in r.message
+
+
+def test_names_with_articles_and_lead_ins_take_the_usual_path(grounder, synth_scene):
+    from rg_core.grounding.relations import bare_name
+
+    vocab = ["blue cup", "orange", "coffee mug"]
+    assert bare_name("Pick up the blue cup, please!", vocab) == "blue cup" and bare_name("the orange", vocab) == "orange"
+    assert bare_name("all the coffee mugs", vocab) is None and bare_name("the red cup", vocab) is None
+    name = synth_scene.objects[0].name
+    plain, polite = grounder.ground(name), grounder.ground(f"show me the {name}, please")
+    assert "graph" not in polite.timings and polite.target == plain.target and polite.success == plain.success
+    assert np.array_equal(polite.objects[0].gaussian_ids, plain.objects[0].gaussian_ids)
+
+
+def test_an_exact_name_beats_its_category_as_anchor():
+    objs = [obj("bowl", "white", (0, 0, 0), (0.1, 0.1, 0.05), conf=0.6),
+            obj("cartoon bowl", "grey", (1, 0, 0), (1.1, 0.1, 0.05), conf=0.99),
+            obj("lemon", "yellow", (0.15, 0, 0), (0.2, 0.05, 0.05)),
+            obj("marker", "black", (1.15, 0, 0), (1.2, 0.05, 0.05))]
+    r = _ask("the object closest to the bowl", objs)
+    assert r.target == "lemon" and "relating to the most certain" not in r.explanation, r.explanation
+    assert _ask("the object closest to the cartoon bowl", objs).target == "marker"
+    cups = [obj("orange cup", "yellow", (0, 0, 0), (0.1, 0.1, 0.1), conf=0.5),
+            obj("yellow cup", "orange", (1, 0, 0), (1.1, 0.1, 0.1), conf=0.9)]
+    assert _ask("the orange cup", cups).target == "orange cup"     # the name says it, ahead of a measured colour

@@ -325,9 +325,10 @@ class Grounder:
         if not_ready:
             return GroundingResult(False, not_ready, query=query)
         self._check_cache()
-        rq = relations.parse(query) if mode != "explicit" else None
-        if rq is not None and rq.attribute_only and f"{rq.colour} {rq.target}" in self.vocabulary():
-            rq = None   # "orange cup" is a name
+        name = relations.bare_name(query, self.vocabulary())
+        if name is not None:   # "the orange cup, please": a name, the usual path (no graph)
+            query = name
+        rq = relations.parse(query) if mode != "explicit" and name is None else None
         if rq is not None:   # about objects in relation to others: over the scene graph
             s = time.perf_counter()
             objs = self.scene_graph()

@@ -149,11 +149,23 @@ def _relation(text: str) -> Relational | None:
     return Relational(t, c, rel, [_singular(a) for a in anchors], superlative=SUPERLATIVES[sup[1]] if sup else "")
 
 
-def parse(query: str) -> Relational | None:
-    """A relational query, or None when the query is a plain name or description."""
+def _normalise(query: str) -> str:
+    """Lower case, single spaces, without end punctuation, "please" or a lead-in ("show me")."""
     q = " ".join(query.lower().split()).strip(" ?.!")
     q = re.sub(r"^please,? |,? please$", "", q).strip(" ?.!,")
-    q = re.sub(LEAD_IN, "", q)
+    return re.sub(LEAD_IN, "", q)
+
+
+def bare_name(query: str, vocabulary: list[str]) -> str | None:
+    """The vocabulary name a query asks for with only an article, a lead-in or "please" around it
+    ("pick up the blue cup, please" -> "blue cup"), else None."""
+    q = re.sub(r"^(the|a|an)\s+", "", _normalise(query))
+    return {v.lower(): v for v in vocabulary}.get(q)
+
+
+def parse(query: str) -> Relational | None:
+    """A relational query, or None when the query is a plain name or description."""
+    q = _normalise(query)
     q = re.sub(r"^(?:what's|whats|what|which one is|which)\s+(?=(?:(?:is|are) )?(?:" + _REL_RE + r") )", "", q)
     if re.match(r"(?:(?:is|are) )?(?:" + _REL_RE + r") ", q):   # "what's next to the X": any object
         q = "object " + q
@@ -398,7 +410,7 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
     known = ", ".join(sorted({o.name for o in objs})) or "none"
     anchors = []
     for a in rq.anchors:
-        found = sorted(_match(objs, a), key=lambda o: -o.names[0][1])
+        found = [o for o in objs if o.name == a] or sorted(_match(objs, a), key=lambda o: -o.names[0][1])
         if not found:
             res.message = f"no {a!r} in the map to relate to (objects: {known})"
             res.explanation = rq.describe()
@@ -477,7 +489,7 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
         why = f"{where.strip()} ({d[0][0]:.2f} {unit}" + (
             f", next nearest {d[1][0]:.2f} m" if len(d) > 1 else "") + ")"
     else:   # attribute only ("the red cup"): the most certain
-        chosen = sorted(cands, key=lambda o: -o.names[0][1])
+        chosen = sorted(cands, key=lambda o: (rq.colour not in o.name.split(), -o.names[0][1]))   # named so first
         why = f"{len(cands)} {what!r} in the map" + (", the most certain" if len(cands) > 1 else "")
     chosen = chosen if rq.count or rq.every else chosen[:max(max_results, 1)]
     if not chosen:   # counting nothing is an answer: zero
