@@ -77,6 +77,8 @@ FREEFORM = {
 
 
 def _plural(name: str) -> str:
+    if name.endswith("s"):   # scissors, glasses: already plural
+        return name
     if name.endswith("fe"):
         return name[:-2] + "ves"
     return name + ("es" if name.endswith(("s", "sh", "ch", "x")) else "s")
@@ -155,8 +157,8 @@ def queries(scene, rng, colours: dict[str, str], cam: np.ndarray, K: np.ndarray)
         if len(pool) >= 2:
             add("all", f"all the {CATEGORIES[k]}", pool, c=k, cs=CATEGORIES[k])
             terms = [colours.get(n, "").split()[-1] if colours.get(n) else "" for n in pool]
-            for n, t in zip(pool, terms):
-                if t and terms.count(t) == 1:
+            for n, t in zip(pool, terms):   # unambiguous: one member of that colour, no other named so
+                if t and terms.count(t) == 1 and not any(t in m.split() for m in pool if m != n):
                     add("colour", f"the {t} {k}", n, c=k, k=t)
             order = sorted(pool, key=lambda n: ux[n])
             gaps = np.diff([ux[n] for n in order])
@@ -165,7 +167,7 @@ def queries(scene, rng, colours: dict[str, str], cam: np.ndarray, K: np.ndarray)
                     add("ordinal", f"the {ORDINAL[i + 1]} {k} from the left", order[i], c=k, order=order)
                 add("ordinal", f"the first {k} from the right", order[-1], c=k, order=order)
     a = names[int(rng.integers(len(names)))]
-    add("count", f"how many {_plural(a)} are there", sum(_is_a(n, a) for n in names), c=a, cs=_plural(a))
+    add("count", f"how many {_plural(a)} are there", sum(n == a or _is_a(n, a) for n in names), c=a, cs=_plural(a))
     out = [{**q, "template": "generated"} for qs in gen.values() for q in qs]
     return out + freeform(gen, rng)
 
