@@ -3,7 +3,8 @@ oracle supervision checked against the ground-truth object centres."""
 import numpy as np
 import pytest
 
-from rg_core.grounding.relations import Relational, colour_term, parse
+from rg_core.grounding.phrases import Relational, parse
+from rg_core.grounding.relations import colour_term
 
 
 @pytest.mark.parametrize("query, want", [
@@ -155,7 +156,7 @@ def _camera():
 
 
 def _ask(query, objs, max_results=1):
-    from rg_core.grounding.relations import answer, parse
+    from rg_core.grounding.relations import answer
 
     return answer(parse(query), objs, _camera(), "the test camera", max_results, query, up=np.array([0.0, 0.0, 1.0]))
 
@@ -207,7 +208,7 @@ def test_relational_descriptions_of_absent_things_take_the_usual_path(grounder):
 
 
 def test_names_with_articles_and_lead_ins_take_the_usual_path(grounder, synth_scene):
-    from rg_core.grounding.relations import bare_name
+    from rg_core.grounding.phrases import bare_name
 
     vocab = ["blue cup", "orange", "coffee mug"]
     assert bare_name("Pick up the blue cup, please!", vocab) == "blue cup" and bare_name("the orange", vocab) == "orange"

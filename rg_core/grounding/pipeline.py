@@ -18,7 +18,7 @@ from ..geometry.conventions import backproject, up_direction
 from ..geometry.points import map_spacing
 from ..render import rasterize
 from ..util import torch_threads
-from . import confidence, relations, stages
+from . import confidence, phrases, relations, stages
 from .cache import MapCache
 from .carve import mask_depth_offsets, registration_border
 from .grouping import Groups, cluster_instances
@@ -325,10 +325,10 @@ class Grounder:
         if not_ready:
             return GroundingResult(False, not_ready, query=query)
         self._check_cache()
-        name = relations.bare_name(query, self.vocabulary())
+        name = phrases.bare_name(query, self.vocabulary())
         if name is not None:   # "the orange cup, please": a name, the usual path (no graph)
             query = name
-        rq = relations.parse(query) if mode != "explicit" and name is None else None
+        rq = phrases.parse(query) if mode != "explicit" and name is None else None
         if rq is not None:   # about objects in relation to others: over the scene graph
             s = time.perf_counter()
             objs = self.scene_graph()

@@ -1,0 +1,188 @@
+"""The rule parser of relational queries: text -> `Relational` (target, colour, relation to anchors,
+superlative, ordinal, counting, "all"), or None for a plain name or a description.
+
+It reads: "how many X [relation]", "all the X [relation]", "the biggest / smallest / tallest /
+shortest / highest / lowest X", "the X nearest to me / the camera", "the second X from the left",
+"the leftmost X", "the X on the left", "the X closest to / next to / near / beside the Y", "the X
+between the Y and the Z", "the X left of / right of / in front of / behind the Y", "the X on / on top
+of / under / above the Y", and colour words before the target ("the red cup"); lead-ins ("show me",
+"where is"), "please" and articles around them. relations.py answers what it reads.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+
+from ..perception.colour_names import COLOUR_TERMS
+
+ANY = ("object", "thing", "item", "one", "objects", "things", "items", "whatever", "something", "anything", "stuff",
+       "what", "which", "which one")
+SUPERLATIVES = {"biggest": "biggest", "largest": "biggest", "smallest": "smallest", "tiniest": "smallest",
+                "tallest": "tallest", "highest": "highest", "shortest": "shortest", "lowest": "lowest"}
+RELATIONS = {"closest to": "near", "nearest to": "near", "next to": "near", "near": "near", "beside": "near",
+             "right next to": "near", "right beside": "near", "just next to": "near",
+             "close to": "near", "to the left of": "left", "left of": "left", "to the right of": "right",
+             "right of": "right", "on the left of": "left", "on the right of": "right", "in front of": "front",
+             "behind": "behind", "between": "between", "in between": "between",
+             "on top of": "on", "on": "on", "sitting on": "on", "resting on": "on", "lying on": "on",
+             "standing on": "on", "atop": "on", "under": "under", "underneath": "under", "beneath": "under",
+             "below": "under", "above": "above", "over": "above"}
+_REL_RE = "|".join(sorted((re.escape(k) for k in RELATIONS), key=len, reverse=True))
+# words common in descriptions ("the fruit that fell on Newton's head"): these relations only between
+# short noun phrases without a clause
+LOOSE = {"on", "under", "above"}
+CLAUSE = {"that", "which", "who", "to", "for", "with", "you", "i", "can", "used", "when", "where", "what", "at", "in",
+          "of", "by", "from", "it", "goes", "fell", "put", "turns"}
+ORDINALS = {"first": 1, "1st": 1, "second": 2, "2nd": 2, "third": 3, "3rd": 3, "fourth": 4, "4th": 4, "fifth": 5,
+            "5th": 5, "sixth": 6, "6th": 6, "last": -1}
+LEAD_IN = (r"^(?:can you |could you )?(?:show me |find |give me |point (?:to|at) |locate |where (?:is|are) "
+           r"|where's |which is |what is |what's |pick up |grab |get me |hand me |see )?")
+CAMERA_WORDS = ("me", "the camera", "camera", "you", "the robot", "us")
+
+
+@dataclass
+class Relational:
+    """A parsed relational query."""
+
+    target: str                        # the name sought; "" = any object
+    colour: str = ""                   # a basic colour term the target must have
+    relation: str = ""                 # near | left | right | front | behind | between
+    anchors: list[str] = field(default_factory=list)
+    superlative: str = ""              # biggest | smallest | tallest | shortest | highest | lowest | nearest_camera
+    count: bool = False
+    ordinal: int = 0                   # the Nth from `side` (-1: the last)
+    side: str = ""                     # left | right (with ordinal)
+    every: bool = False                # "all the X": every match
+
+    @property
+    def attribute_only(self) -> bool:
+        return not (self.relation or self.superlative or self.count or self.ordinal or self.every)
+
+    def describe(self) -> str:
+        parts = [f"target: {self.target or 'any object'}"]
+        if self.colour:
+            parts.append(f"colour: {self.colour}")
+        if self.relation:
+            parts.append(f"relation: {self.relation} " + " and ".join(repr(a) for a in self.anchors))
+        if self.superlative:
+            parts.append(f"superlative: {self.superlative.replace('_', ' ')}")
+        if self.ordinal:
+            parts.append(f"ordinal: {'last' if self.ordinal < 0 else _nth(self.ordinal)} from the {self.side}")
+        if self.count:
+            parts.append("count")
+        if self.every:
+            parts.append("all matches")
+        return "; ".join(parts)
+
+
+def _nth(n: int) -> str:
+    return f"{n}{'th' if 10 <= n % 100 <= 20 else {1: 'st', 2: 'nd', 3: 'rd'}.get(n % 10, 'th')}"
+
+
+def _strip(phrase: str) -> str:
+    p = re.sub(r"^(which|what|whichever|whatever)\s+(?=\w+ (is|are)$|\w+$)", "", phrase.strip(" ?.!,"))
+    p = re.sub(r"\s+(is|are)$", "", p)
+    p = re.sub(r"^(the|a|an|any|all( the)?)\s+", "", p)
+    return re.sub(r"\s+(are there|is there|(?:do|can) you (?:see|find)|do you have|you can see|"
+                  r"(?:are |is )?in the (scene|map|room))$", "", p).strip()
+
+
+def _target(phrase: str) -> tuple[str, str]:
+    """'red cup' -> ('cup', 'red'); 'object' -> ('', '')."""
+    words = _strip(phrase).split()
+    colour = words.pop(0) if len(words) > 1 and words[0] in COLOUR_TERMS else ""
+    name = " ".join(words)
+    return ("" if name in ANY else _singular(name)), colour
+
+
+IRREGULAR = {"knives": "knife", "leaves": "leaf", "shelves": "shelf", "halves": "half", "loaves": "loaf",
+             "mice": "mouse", "people": "person", "children": "child", "teeth": "tooth", "feet": "foot"}
+
+
+def _singular(name: str) -> str:
+    head, _, last = name.rpartition(" ")
+    if last in IRREGULAR:
+        return f"{head} {IRREGULAR[last]}".strip()
+    if name.endswith("ies"):
+        return name[:-3] + "y"
+    if name.endswith(("ches", "shes", "xes", "ses")):
+        return name[:-2]
+    return name[:-1] if name.endswith("s") and not name.endswith("ss") else name
+
+
+def _relation(text: str) -> Relational | None:
+    """'cups (that are) next to the laptop' -> Relational, or None."""
+    m = re.fullmatch(r"(?P<t>.+?) (?:(?:that|which) )?(?:(?:is|are|sits|sit|lies|lie|stands|stand|rests|rest)"
+                     r"(?: sitting| lying| standing| resting)? )?(?P<r>" + _REL_RE +
+                     r") (?P<a>.+?)(?: and (?P<b>.+))?", text)
+    if not m:
+        return None
+    sup = re.match(r"(?:the |a |an )?(" + "|".join(SUPERLATIVES) + r") ", m["t"])   # "the biggest cup on the table"
+    t, c = _target(m["t"][sup.end():] if sup else m["t"])
+    rel = RELATIONS[m["r"]]
+    anchors = [_strip(m["a"])] + ([_strip(m["b"])] if m["b"] else [])
+    if rel == "between" and len(anchors) != 2:
+        return None
+    if rel != "between" and m["b"]:
+        anchors = [_strip(m["a"] + " and " + m["b"])]
+    if rel in LOOSE and (len(_strip(m["t"]).split()) > 3 or set(_strip(m["t"]).split()) & CLAUSE
+                         or any(len(a.split()) > 3 or set(a.split()) & CLAUSE for a in anchors)):
+        return None
+    if rel == "near" and anchors[0] in CAMERA_WORDS:
+        return Relational(t, c, superlative="nearest_camera")
+    if not all(anchors):
+        return None
+    return Relational(t, c, rel, [_singular(a) for a in anchors], superlative=SUPERLATIVES[sup[1]] if sup else "")
+
+
+def _normalise(query: str) -> str:
+    """Lower case, single spaces, without end punctuation, "please" or a lead-in ("show me")."""
+    q = " ".join(query.lower().split()).strip(" ?.!")
+    q = re.sub(r"^please,? |,? please$", "", q).strip(" ?.!,")
+    return re.sub(LEAD_IN, "", q)
+
+
+def bare_name(query: str, vocabulary: list[str]) -> str | None:
+    """The vocabulary name a query asks for with only an article, a lead-in or "please" around it
+    ("pick up the blue cup, please" -> "blue cup"), else None."""
+    q = re.sub(r"^(the|a|an)\s+", "", _normalise(query))
+    return {v.lower(): v for v in vocabulary}.get(q)
+
+
+def parse(query: str) -> Relational | None:
+    """A relational query, or None when the query is a plain name or description."""
+    q = _normalise(query)
+    q = re.sub(r"^(?:what's|whats|what|which one is|which)\s+(?=(?:(?:is|are) )?(?:" + _REL_RE + r") )", "", q)
+    if re.match(r"(?:(?:is|are) )?(?:" + _REL_RE + r") ", q):   # "what's next to the X": any object
+        q = "object " + q
+    m = re.fullmatch(r"(?:how many|count(?: the)?) (?P<t>.+)", q)
+    if m:
+        rest = _strip(m["t"])
+        rq = _relation(rest) or Relational(*_target(rest))
+        rq.count = True
+        return rq
+    m = re.fullmatch(r"(?:all(?: of)?|every|each)(?: the)? (?P<t>.+)", q)
+    if m:
+        rq = _relation(m["t"]) or Relational(*_target(m["t"]))
+        rq.every = True
+        return rq
+    m = re.fullmatch(r"(?:the )?(?P<n>" + "|".join(ORDINALS) + r") (?P<t>.+?) (?:from|on) the (?P<s>left|right)", q)
+    if m:
+        return Relational(*_target(m["t"]), ordinal=ORDINALS[m["n"]], side=m["s"])
+    m = re.fullmatch(r"(?:the )?(?P<s>left|right)most (?P<t>.+)", q) or \
+        re.fullmatch(r"(?P<t>.+?)(?: that| which)?(?: is| are)? on the (?:far )?(?P<s>left|right)(?: side)?", q)
+    if m:
+        return Relational(*_target(m["t"]), ordinal=1, side=m["s"])
+    m = re.fullmatch(r"(?:the |a |an )?(?P<s>" + "|".join(SUPERLATIVES) + r"|nearest|closest) (?P<t>.+?)"
+                     r"(?: (?:to|from) (?:me|the camera|the robot|you))?", q)
+    if m and not re.search(r" (?:" + _REL_RE + r") ", f" {m['t']} "):
+        t, c = _target(m["t"])
+        sup = "nearest_camera" if m["s"] in ("nearest", "closest") else SUPERLATIVES[m["s"]]
+        return Relational(t, c, superlative=sup)
+    rq = _relation(q)
+    if rq is not None:
+        return rq
+    t, c = _target(q)
+    if c and len(q.split()) <= 4:   # "the red cup": a colour and a name (callers check it is not one name)
+        return Relational(t, c)
+    return None
