@@ -27,6 +27,8 @@ class EnduranceConfig:
     ground_period: float = 2.0     # seconds between /ground calls
     ground_timeout: float = 60.0   # a call without a reply after this counts as unanswered
     sample_period: float = 0.5     # seconds between memory samples
+    warmup_timeout: float = 300.0  # before the run: one slow pass of the scene, then wait (up to this many
+                                   # seconds) for the node to settle: frames mapped, the field's first stop
     queries: tuple[str, ...] = ("orange", "the biggest object", "something to eat")
     params: dict = field(default_factory=lambda: dict(
         pose_source="topic", map_width=80, iters_per_keyframe=2, torch_threads=1, frame_queue_size=4,
@@ -122,7 +124,7 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
     spin = threading.Thread(target=executor.spin, daemon=True)
     spin.start()
     samples, calls = [], []
-    replay = None
+    replay, warm = None, {}
     stop = threading.Event()
     t0 = time.monotonic()
     try:
@@ -131,6 +133,17 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
             time.sleep(0.2)
         if node.poll() is not None or not status:
             raise RuntimeError(f"rg-node did not come up: {(work / 'node.log').read_text()[-2000:]}")
+        # Warm-up, not measured: models load, the first keyframes are supervised and the field trains
+        # once. The run then measures the steady state a robot lives in for hours.
+        subprocess.run([sys.executable, "-m", "rg_ros.tools", "replay", str(scene), "--rate", "4", "--wait", "60"],
+                       env=env, stdout=(work / "warmup.log").open("w"), stderr=subprocess.STDOUT,
+                       timeout=cfg.warmup_timeout)
+        end = time.monotonic() + cfg.warmup_timeout
+        while time.monotonic() < end and node.poll() is None and not (
+                status.get("field_stop") and status.get("queue") == 0 and status.get("received", 0) > 0):
+            time.sleep(0.5)
+        warm = dict(status)
+        t0 = time.monotonic()
         replay = subprocess.Popen([sys.executable, "-m", "rg_ros.tools", "replay", str(scene), "--loop", "--count",
                                    str(cfg.frames), "--rate", str(cfg.rate), "--wait", "60"], env=env,
                                   stdout=(work / "replay.log").open("w"), stderr=subprocess.STDOUT)
@@ -156,9 +169,9 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
         bar = tqdm(total=cfg.frames, desc="endurance", unit="frame", disable=not progress, file=sys.stderr)
         while replay.poll() is None and node.poll() is None:
             st = dict(status)
-            samples.append({"t": time.monotonic() - t0, "rss_mb": _rss_mb(node.pid),
-                            **{k: st.get(k) for k in ("received", "mapped", "dropped", "rejected", "queue",
-                                                      "gaussians", "keyframes", "evicted")}})
+            since = {k: (st.get(k) or 0) - (warm.get(k) or 0) for k in ("received", "mapped", "dropped", "rejected")}
+            samples.append({"t": time.monotonic() - t0, "rss_mb": _rss_mb(node.pid), **since,   # counts: after warm-up
+                            **{k: st.get(k) for k in ("queue", "gaussians", "keyframes", "evicted")}})
             if int(st.get("received") or 0) != bar.n:
                 bar.n = int(st.get("received") or 0)
                 bar.refresh()
@@ -177,6 +190,7 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
         probe.destroy_node()
         ctx.try_shutdown()
     return {"samples": samples, "calls": calls, "crashed": crashed, "node_exit": node.returncode,
+            "warmup": {k: warm.get(k) for k in ("received", "mapped", "keyframes", "gaussians", "field_stop")},
             "summary": summarise(samples, calls, crashed)}
 
 
@@ -190,11 +204,14 @@ def summarise(samples: list[dict], calls: list[dict], crashed: bool) -> dict:
     lat = [c["seconds"] for c in calls if c["seconds"] is not None]
     k = max(1, len(lat) // 10)
     last = samples[-1] if samples else {}
+    kf = [x["keyframes"] or 0 for x in samples if x["rss_mb"] is not None]
+    kf_added = int(kf[-1] - kf[max(half - 1, 0)]) if kf else 0
     return {"frames_received": last.get("received"), "frames_mapped": last.get("mapped"),
             "frames_dropped": last.get("dropped"), "queue_max": max((s["queue"] or 0) for s in samples) if samples else 0,
             "gaussians": last.get("gaussians"), "keyframes": last.get("keyframes"),
             "rss_mid_mb": peak_mid, "rss_peak_mb": peak_end,
             "rss_growth_last_half_pct": 100.0 * (peak_end - peak_mid) / peak_mid if peak_mid > 0 else float("nan"),
+            "keyframes_added_last_half": kf_added,
             "calls": len(calls), "calls_unanswered": sum(c["seconds"] is None for c in calls),
             "calls_answered_success": sum(c["success"] for c in calls),
             "latency_p95_first_s": float(np.percentile(lat[:k], 95)) if lat else float("nan"),

@@ -216,6 +216,7 @@ def test_names_with_articles_and_lead_ins_take_the_usual_path(grounder, synth_sc
     name = synth_scene.objects[0].name
     plain, polite = grounder.ground(name), grounder.ground(f"show me the {name}, please")
     assert "graph" not in polite.timings and polite.target == plain.target and polite.success == plain.success
+    assert polite.query == f"show me the {name}, please"           # the result says what was asked
     assert np.array_equal(polite.objects[0].gaussian_ids, plain.objects[0].gaussian_ids)
 
 

@@ -326,8 +326,10 @@ class Grounder:
             return GroundingResult(False, not_ready, query=query)
         self._check_cache()
         name = phrases.bare_name(query, self.vocabulary())
-        if name is not None:   # "the orange cup, please": a name, the usual path (no graph)
-            query = name
+        if name is not None and name != query:   # "the orange cup, please": that name, the usual path
+            res = self._ground(name, mode, max_results, view)
+            res.query = query
+            return res
         rq = phrases.parse(query) if mode != "explicit" and name is None else None
         if rq is not None:   # about objects in relation to others: over the scene graph
             s = time.perf_counter()
