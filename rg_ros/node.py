@@ -287,10 +287,10 @@ class GroundingNode(TFInput, Node):
             self.pub_grounded.publish(response.cloud)
             self.pub_markers.publish(result_markers(result, p.map_frame, stamp, box_alpha=p.marker_alpha))
             self._on_masks()
-        if "graph" in result.timings:   # the answer built or used the scene graph: publish it if new
-            self._on_scene_graph()
         else:
             log.warning(f"ground '{short}' failed: {result.message}")
+        if "graph" in result.timings:   # the answer built or used the scene graph: publish it if new
+            self._on_scene_graph()
         return response
 
     def _on_save(self, request, response):
