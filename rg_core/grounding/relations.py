@@ -205,7 +205,8 @@ def _frame(up: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def graph_relations(objs: list[SceneObject], up: np.ndarray) -> list[tuple[int, str, int, float]]:
     """The graph's edges (subject, "on" | "near", object, box distance m): i on j when it rests on
     j's top over j's footprint; near when their boxes are within NEAR_GAP (listed once, i < j)."""
-    geo = [_Geometry(o, *_frame(up)) for o in objs]
+    frame = _frame(up)
+    geo = [_Geometry(o, *frame) for o in objs]
     out = []
     for i, a in enumerate(objs):
         for j, b in enumerate(objs):
