@@ -86,7 +86,7 @@ def _plural(name: str) -> str:
 
 def gt_colours(scene, min_px: int = 20) -> dict[str, str]:
     """The basic colour term of each object's visible pixels over the test views."""
-    from rg_core.grounding.relations import colour_term
+    from rg_core.perception.colour_names import colour_term
 
     px: dict[int, list] = {}
     for f in scene.test:

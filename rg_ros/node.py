@@ -86,7 +86,8 @@ class GroundingNode(TFInput, Node):
         log = self.get_logger()
         cfg = load_config(p.rg_config or None)
         over_map = {k: v for k, v in (("width", p.map_width), ("iters_per_keyframe", p.iters_per_keyframe),
-                                      ("max_gaussians", p.max_gaussians)) if v > 0}
+                                      ("max_gaussians", p.max_gaussians), ("max_keyframes", p.max_keyframes))
+                  if v > 0}
         cfg = dataclasses.replace(cfg, map=dataclasses.replace(cfg.map, **over_map),
                                   ground=dataclasses.replace(cfg.ground, min_confidence=p.min_confidence))
         if p.preset:

@@ -103,6 +103,7 @@ class NodeParams:
     map_width: int = _p(0, "mapper working width in pixels (0 = rg_config's map.width)", 0, 8192)
     iters_per_keyframe: int = _p(0, "optimisation iterations per keyframe (0 = rg_config's)", 0, 100000)
     max_gaussians: int = _p(0, "bound on the map's Gaussians (0 = rg_config's)", 0, 1_000_000_000)
+    max_keyframes: int = _p(0, "bound on the map's keyframes and their supervision (0 = rg_config's)", 0, 1_000_000)
     load_map: str = _p("", "map file loaded at start-up (empty = start with an empty map)")
     save_path: str = _p("rg_map.pt", "where ~/save_map (and the save on shutdown) writes the map")
     save_on_shutdown: bool = _p(False, "save the map to save_path when the node stops (SIGINT, SIGTERM)")

@@ -207,6 +207,10 @@ def test_training_follows_a_growing_map_and_pca_refits(synth_scene):
     stats = f.train(iters=3)
     assert stats["steps"] == 3 and np.isfinite(stats["loss"])
     assert f.latents.shape == (len(mapper.gaussians), 32) and torch.isfinite(f.latents).all()
+    # A keyframe dropped at the map's keyframe budget leaves the field's per-keyframe caches.
+    dropped = mapper.drop_redundant_keyframe()
+    assert dropped is not None and dropped.index not in sset.by_keyframe
+    assert f.train(iters=2)["steps"] == 2 and set(f._masks) <= {kf.index for kf in mapper.keyframes}
     # A PCA refit re-expresses the language mapper: new output = old output, decompressed and
     # compressed again in the new basis.
     lat = torch.randn(10, 32)

@@ -119,6 +119,51 @@ def test_memory_bound_evicts_for_a_new_area_and_spares_protected_boxes(synth_sce
         mapper.protect(np.array([0, 0, np.nan]), np.ones(3))
 
 
+def test_keyframe_budget_drops_the_most_redundant_view_with_its_supervision(synth_scene):
+    """Past max_keyframes the keyframe nearest another one in pose goes (never the newest window),
+    with its supervision and PCA rows; its Gaussians stay and the map keeps rendering its view."""
+    from scipy.spatial.transform import Rotation
+
+    from rg_core.map.mapper import Keyframe
+    from rg_core.perception.supervision import KeyframeSupervision, SupervisionSet
+
+    mapper = Mapper(MapConfig(width=160, window=2, max_keyframes=4))
+    sset = mapper.supervision = SupervisionSet(pca_dim=4)
+
+    def pose(x, yaw_deg):
+        c2w = np.eye(4)
+        c2w[:3, :3] = Rotation.from_euler("y", yaw_deg, degrees=True).as_matrix()
+        c2w[0, 3] = x
+        return c2w
+
+    # x (m), yaw: keyframe 2 sits 2 cm and 1 degree from keyframe 1; 4 and 5 are the newest window
+    for i, (x, yaw) in enumerate([(0.0, 0), (1.0, 0), (1.02, 1), (2.0, 40), (2.0, 80), (2.01, 80)]):
+        mapper.keyframes.append(Keyframe(i, float(i), pose(x, yaw), np.eye(3), torch.zeros(2, 2, 3), torch.zeros(2, 2)))
+        sset.add(i, KeyframeSupervision(np.zeros((3, 2, 2), bool), np.ones(3, np.float32), np.ones(3, np.int8),
+                                        np.ones(3, np.float32), torch.randn(3, 8)))
+    assert len(sset.pca.raw) == 6
+    assert mapper.drop_redundant_keyframe().index == 1          # older of the closest pair (1, 2)
+    assert [k.index for k in mapper.keyframes] == [0, 2, 3, 4, 5] and set(sset.by_keyframe) == {0, 2, 3, 4, 5}
+    assert len(sset.pca.raw) == 5 and mapper.totals["keyframes_dropped"] == 1
+    assert mapper.drop_redundant_keyframe().index in (2, 3)   # never 4 or 5 (the window), though 5 is 1 cm from 4
+    assert {4, 5} <= {k.index for k in mapper.keyframes}
+    lone = Mapper(MapConfig(window=8))
+    lone.keyframes.append(mapper.keyframes[0])
+    assert lone.drop_redundant_keyframe() is None and len(lone.keyframes) == 1
+
+    # streamed: the bound holds at every frame, the newest keyframes stay, the first view still renders
+    frames = [frame_args(f) for f in synth_scene.train]
+    mapper = Mapper(MapConfig(width=160, iters_per_keyframe=2, window=2, max_keyframes=3))
+    for args in frames + [(rgb, d, K, c2w, stamp + 100.0) for rgb, d, K, c2w, stamp in frames]:
+        r = mapper.add_frame(*args)
+        assert len(mapper.keyframes) <= 3
+        if r.keyframe:
+            assert mapper.keyframes[-1].stamp == args[4]
+    assert mapper.stats()["keyframes_dropped"] > 0
+    rgb, _, K, c2w, _ = frames[0]
+    assert float(mapper.render(K, c2w, rgb.shape[1], rgb.shape[0]).alpha.mean()) > 0.5
+
+
 @pytest.mark.parametrize("mutate, message", [
     (lambda a: a.update(cam_to_world=np.full((4, 4), np.nan)), "NaN or inf"),
     (lambda a: a.update(cam_to_world=np.diag([1.0, 2.0, 1.0, 1.0])), "not orthonormal"),

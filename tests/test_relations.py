@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from rg_core.grounding.phrases import Relational, parse
-from rg_core.grounding.relations import colour_term
+from rg_core.perception.colour_names import colour_term
 
 
 @pytest.mark.parametrize("query, want", [
@@ -52,6 +52,25 @@ def test_colour_terms():
     assert colour_term(px([200, 30, 30])) == "red" and colour_term(px([40, 60, 200])) == "blue"
     assert colour_term(px([250, 250, 250])) == "white" and colour_term(px([0, 0, 80])) == "dark blue"
     assert colour_term(px([150, 200, 255])) == "light blue"
+
+
+def test_colour_term_in_cielab_names_focal_colours_and_ignores_shading():
+    focal = {"red": (220, 30, 30), "orange": (245, 130, 20), "yellow": (245, 220, 30), "green": (40, 170, 60),
+             "blue": (30, 80, 210), "purple": (130, 50, 160), "pink": (245, 150, 190), "brown": (130, 80, 40),
+             "white": (240, 240, 240), "grey": (128, 128, 128), "black": (20, 20, 20), "dark blue": (0, 0, 128)}
+    for word, rgb in focal.items():
+        assert colour_term(np.array([rgb], np.uint8)) == word, (word, colour_term(np.array([rgb], np.uint8)))
+    # a white bowl, 60 % of it in shadow (grey pixels), is still white; a grey one lit on a rim is grey
+    bowl = np.array([[245, 245, 245]] * 40 + [[150, 150, 150]] * 60, np.uint8)
+    assert colour_term(bowl) == "white"
+    assert colour_term(np.array([[130, 130, 130]] * 90 + [[250, 250, 250]] * 10, np.uint8)) == "grey"
+    # a red mug with a white label is red; extremes of the range are still named
+    assert colour_term(np.array([[200, 20, 30]] * 60 + [[250, 250, 250]] * 40, np.uint8)) == "red"
+    assert colour_term(np.zeros((1, 3), np.uint8)) == "black"
+    assert colour_term(np.full((1, 3), 255.0)) == "white"
+    for bad in (np.zeros((0, 3), np.uint8), np.zeros((3, 4), np.uint8), np.array([[np.nan, 0, 0]])):
+        with pytest.raises(ValueError, match="colour_term"):
+            colour_term(bad)
 
 
 def _centres(scene):

@@ -123,6 +123,11 @@ class MapConfig:
     """New scale = seed_scale x stride x depth / focal length (the local point spacing)."""
     init_opacity: float = 0.9
     """Opacity of new Gaussians."""
+    max_keyframes: Annotated[int, Interval(ge=0)] = 120
+    """Memory bound on keyframes (images, depth and their supervision masks, ~10 MB each at 320 px;
+    0: none). Past it the most redundant keyframe goes (Mapper.drop_redundant_keyframe: the one whose
+    pose is nearest another keyframe's, never one of the newest `window`), with its supervision;
+    its Gaussians stay."""
     kf_new_fraction: float = 0.04
     """A frame is a keyframe if more than this fraction of its valid depth is unexplained ..."""
     kf_photo_error: float = 0.09

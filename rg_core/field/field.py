@@ -138,6 +138,8 @@ class FeatureField:
         sset = getattr(self.mapper, "supervision", None)
         if sset is None:
             return []
+        for k in set(self._masks) - {kf.index for kf in self.mapper.keyframes}:
+            del self._masks[k]          # a dropped keyframe (MapConfig.max_keyframes)
         return [kf for kf in self.mapper.keyframes
                 if kf.index in sset.by_keyframe and len(sset.by_keyframe[kf.index].scales)]
 

@@ -165,7 +165,7 @@ class Grounder:
         g = m.gaussians
         tensors = (g.means, g.log_scales, g.quats, g.opacity_logits)
         sset = m.supervision
-        counters = (len(g), m.frames_seen, len(m.keyframes), id(sset))
+        counters = (len(g), m.frames_seen, len(m.keyframes), m.keyframes[-1].index if m.keyframes else -1, id(sset))
         if sset is not None:
             counters += (len(sset.by_keyframe), sum(len(s.embeddings) for s in sset.by_keyframe.values()),
                          getattr(sset.pca, "version", None), id(sset.pca.pca))
@@ -295,7 +295,7 @@ class Grounder:
     def up(self) -> np.ndarray:
         """The map's up direction [3] from its keyframes' poses (geometry.conventions.up_direction)."""
         self._check_cache()
-        return self.cache.get("up", len(self.mapper.keyframes),
+        return self.cache.get("up", tuple(k.index for k in self.mapper.keyframes),
                               lambda: up_direction(np.stack([k.cam_to_world for k in self.mapper.keyframes])))
 
     def _relational(self, rq, objs: list, query: str, max_results: int, view: tuple | None,

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..perception.colour_names import COLOUR_TERMS, colour_histogram
+from ..perception.colour_names import COLOUR_TERMS, colour_term
 from .boxes import robust_inliers
 from .phrases import Relational, _nth, _singular
 from .result import GroundedObject, GroundingResult
@@ -54,19 +54,6 @@ class SceneObject:
                 "centre": self.centre.round(4).tolist(), "extent": np.asarray(self.obj.obb_extent).round(4).tolist(),
                 "aabb": [np.asarray(v).round(4).tolist() for v in (self.obj.aabb_min, self.obj.aabb_max)],
                 "gaussians": len(self.obj.gaussian_ids)}
-
-
-def colour_term(rgb: np.ndarray) -> str:
-    """uint8 [N, 3] -> the basic colour term most of them have, "light"/"dark" before a chromatic
-    one that is bright or dark on average."""
-    hist = colour_histogram(rgb)
-    term = COLOUR_TERMS[int(np.argmax(hist))]
-    v = float(np.asarray(rgb, np.float64).max(1).mean())
-    if term in COLOUR_TERMS[:8] and v > 215:
-        return f"light {term}"
-    if term in COLOUR_TERMS[:8] and v < 90:
-        return f"dark {term}"
-    return term
 
 
 def build_graph(g, names: list[str]) -> list[SceneObject]:

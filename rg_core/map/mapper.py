@@ -81,7 +81,8 @@ class Mapper:
             "opacity_logits": lr.lr_opacity, "colors": lr.lr_colors, "background": lr.lr_colors})
         self.frames_seen = 0
         self.last_stamp: float | None = None
-        self.totals = {"added": 0, "dropped": 0, "pruned": 0, "evicted": 0, "out_of_order": 0, "keyframe_iters": 0}
+        self.totals = {"added": 0, "dropped": 0, "pruned": 0, "evicted": 0, "out_of_order": 0, "keyframe_iters": 0,
+                       "keyframes_dropped": 0}
         self.protected: list[tuple[np.ndarray, np.ndarray]] = []   # boxes (lo, hi) eviction never touches
         self.seconds = {"prepare": 0.0, "check": 0.0, "seed": 0.0, "optimise": 0.0, "prune": 0.0, "refine": 0.0}
         self._rng = torch.Generator().manual_seed(self.cfg.seed)
@@ -161,6 +162,8 @@ class Mapper:
             res.added, res.dropped = res.added + a, res.dropped + d
         t4 = time.perf_counter()
         res.pruned = self._prune()
+        while self.cfg.max_keyframes and len(self.keyframes) > self.cfg.max_keyframes:
+            self.drop_redundant_keyframe()
         t5 = time.perf_counter()
         for k, dt in (("seed", t3 - t2), ("optimise", t4 - t3), ("prune", t5 - t4)):
             self.seconds[k] += dt
@@ -362,6 +365,35 @@ class Mapper:
         self.optim.keep(keep)
         self.totals["evicted"] = self.totals.get("evicted", 0) + len(order)
         return len(order)
+
+    def drop_redundant_keyframe(self, metres_per_radian: float = 0.3) -> Keyframe | None:
+        """Drop the keyframe whose view another keyframe covers best: the smallest pose distance to
+        its nearest other keyframe (translation + metres_per_radian x rotation angle; ties: the
+        oldest). The newest `window` keyframes (the optimisation window) stay, and so does the last
+        one left. Its supervision goes with it; its Gaussians stay. Returns it (None: none could go)."""
+        from scipy.spatial.transform import Rotation
+
+        kfs = self.keyframes
+        n_cand = len(kfs) - min(self.cfg.window, len(kfs) - 1)
+        if len(kfs) < 2 or n_cand <= 0:
+            return None
+        poses = np.stack([kf.cam_to_world for kf in kfs])                  # [N, 4, 4]
+        t = poses[:, :3, 3]
+        rots = Rotation.from_matrix(poses[:, :3, :3])
+        best, victim = np.inf, None
+        for i in range(n_cand):
+            ang = (rots[i].inv() * rots).magnitude()                       # [N] radians
+            d = np.linalg.norm(t - t[i], axis=1) + metres_per_radian * ang
+            d[i] = np.inf
+            if d.min() < best:
+                best, victim = float(d.min()), i
+        if victim is None:
+            return None
+        kf = kfs.pop(victim)
+        if self.supervision is not None:
+            self.supervision.remove(kf.index)
+        self.totals["keyframes_dropped"] = self.totals.get("keyframes_dropped", 0) + 1
+        return kf
 
     def _prune(self) -> int:
         g, c = self.gaussians, self.cfg

@@ -122,6 +122,17 @@ class SupervisionSet:
         self.by_keyframe[keyframe_index] = sup
         return self.pca.add(sup.embeddings) if len(sup.embeddings) else False
 
+    def remove(self, keyframe_index: int) -> bool:
+        """Forget a keyframe's supervision (a dropped keyframe) and its raw rows of the PCA; the
+        basis stays until the next refit. False when it had none."""
+        sup = self.by_keyframe.pop(keyframe_index, None)
+        if sup is None:
+            return False
+        if len(sup.embeddings):
+            ptr = sup.embeddings.data_ptr()
+            self.pca.raw = [r for r in self.pca.raw if r.data_ptr() != ptr]
+        return True
+
     def compressed(self, keyframe_index: int) -> torch.Tensor:  # [M, k] in the current PCA basis
         if self.pca.pca is None:
             raise RuntimeError("PCA not fitted yet: too few masks so far")
