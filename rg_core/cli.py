@@ -41,7 +41,8 @@ def cmd_synth(args, cfg) -> dict:
 
     s = cfg.synth
     over = {k: v for k, v in (("views", args.views), ("objects", args.objects), ("seed", args.seed),
-                              ("workers", args.workers), ("same_category", args.same_category)) if v is not None}
+                              ("workers", args.workers), ("same_category", args.same_category),
+                              ("layout", args.layout), ("tables", args.tables)) if v is not None}
     if args.size is not None:
         over["width"], over["height"] = args.size
     s = dataclasses.replace(s, **over)
@@ -293,13 +294,15 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
         p.add_argument("--quiet", action="store_true", help="no progress bar")
 
-    p = sub.add_parser("synth", help="generate a synthetic table-top scene (ReasoningGD layout)")
+    p = sub.add_parser("synth", help="generate a synthetic table-top or room scene (ReasoningGD layout)")
     p.add_argument("out", help="output scene folder")
     p.add_argument("--views", type=_positive)
     p.add_argument("--size", type=_size, help="WxH, e.g. 320x240")
     p.add_argument("--seed", type=int)
     p.add_argument("--objects", type=_positive, help="number of objects on the table")
     p.add_argument("--same-category", type=int, help="how many of them share a category with another (several cups)")
+    p.add_argument("--layout", choices=("table", "room"), help="one table, or a room of --tables tables and a walk")
+    p.add_argument("--tables", type=_positive, help="tables of the room layout (default 4)")
     p.add_argument("--objects-dir", help="folder of <name>/model.urdf meshes (default: ../shared/data/objects)")
     p.add_argument("--workers", type=_positive, help="render processes")
     common(p)

@@ -30,6 +30,8 @@ class EnduranceConfig:
     warmup_timeout: float = 300.0  # before the run: one slow pass of the scene, then wait (up to this many
                                    # seconds) for the node to settle: frames mapped, the field's first stop
     queries: tuple[str, ...] = ("orange", "the biggest object", "something to eat")
+    faults_every: int = 0          # rg-replay --faults: a bad pose, a pose/TF gap, a 100-frame burst in turn
+    save_every: int = 0            # every Nth /ground call goes out together with a ~/save_map call
     params: dict = field(default_factory=lambda: dict(
         pose_source="topic", map_width=80, iters_per_keyframe=2, torch_threads=1, frame_queue_size=4,
         features=True, train_slice=0.5, train_seconds_max=2.0, status_period=0.5, mask_rate=0.0,
@@ -95,10 +97,11 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.executors import MultiThreadedExecutor
     from rg_interfaces.srv import Ground
+    from std_srvs.srv import Trigger
     from tqdm import tqdm
 
     work.mkdir(parents=True, exist_ok=True)
-    params = write_params(work / "endurance.yaml", cfg.params)
+    params = write_params(work / "endurance.yaml", {"save_path": str(work / "endurance_map.pt"), **cfg.params})
     env = dict(os.environ, RCUTILS_LOGGING_BUFFERED_STREAM="0")
     from .params import INPUTS
 
@@ -119,11 +122,12 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
 
     probe.create_subscription(DiagnosticArray, "/diagnostics", on_status, 10)
     client = probe.create_client(Ground, "/ground")
+    saver = probe.create_client(Trigger, "/rg_node/save_map")
     executor = MultiThreadedExecutor(context=ctx)
     executor.add_node(probe)
     spin = threading.Thread(target=executor.spin, daemon=True)
     spin.start()
-    samples, calls = [], []
+    samples, calls, saves = [], [], []
     replay, warm = None, {}
     stop = threading.Event()
     t0 = time.monotonic()
@@ -145,7 +149,8 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
         warm = dict(status)
         t0 = time.monotonic()
         replay = subprocess.Popen([sys.executable, "-m", "rg_ros.tools", "replay", str(scene), "--loop", "--count",
-                                   str(cfg.frames), "--rate", str(cfg.rate), "--wait", "60"], env=env,
+                                   str(cfg.frames), "--rate", str(cfg.rate), "--wait", "60",
+                                   "--faults", str(cfg.faults_every)], env=env,
                                   stdout=(work / "replay.log").open("w"), stderr=subprocess.STDOUT)
 
         def caller():
@@ -156,8 +161,14 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
             while not stop.is_set():
                 q = cfg.queries[i % len(cfg.queries)]
                 t = time.monotonic()
+                save = saver.call_async(Trigger.Request()) if cfg.save_every and i % cfg.save_every == 0 else None
                 res = client.call(Ground.Request(query=q), timeout_sec=cfg.ground_timeout)
                 dt = time.monotonic() - t
+                if save is not None:
+                    end = time.monotonic() + cfg.ground_timeout
+                    while not save.done() and time.monotonic() < end:
+                        time.sleep(0.05)
+                    saves.append(bool(save.done() and save.result() is not None and save.result().success))
                 calls.append({"t": t - t0, "query": q, "seconds": dt if res is not None else None,
                               "success": bool(res is not None and res.success),
                               "message": (res.message if res is not None else "no reply")[:100]})
@@ -171,7 +182,9 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
             st = dict(status)
             since = {k: (st.get(k) or 0) - (warm.get(k) or 0) for k in ("received", "mapped", "dropped", "rejected")}
             samples.append({"t": time.monotonic() - t0, "rss_mb": _rss_mb(node.pid), **since,   # counts: after warm-up
-                            **{k: st.get(k) for k in ("queue", "gaussians", "keyframes", "evicted")}})
+                            **{k: st.get(k) for k in ("queue", "gaussians", "keyframes", "evicted", "keyframes_dropped")},
+                            "input_errors": sum((st.get("input_errors") or {}).values()),
+                            "sync_dropped": st.get("sync_dropped"), "tf_dropped": st.get("tf_dropped")})
             if int(st.get("received") or 0) != bar.n:
                 bar.n = int(st.get("received") or 0)
                 bar.refresh()
@@ -189,9 +202,25 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
         executor.shutdown(timeout_sec=5)
         probe.destroy_node()
         ctx.try_shutdown()
+    summary = summarise(samples, calls, crashed)
+    warmup = {k: warm.get(k) for k in ("received", "mapped", "keyframes", "gaussians", "field_stop")}
+    summary.update(faults_injected=_faults_logged(work / "replay.log"), saves=len(saves), saves_ok=sum(saves),
+                   keyframes_min_after_warmup=min((x["keyframes"] or 0 for x in samples), default=0),
+                   keyframes_at_warmup=warmup["keyframes"])
     return {"samples": samples, "calls": calls, "crashed": crashed, "node_exit": node.returncode,
-            "warmup": {k: warm.get(k) for k in ("received", "mapped", "keyframes", "gaussians", "field_stop")},
-            "summary": summarise(samples, calls, crashed)}
+            "warmup": warmup, "summary": summary}
+
+
+def _faults_logged(log: Path) -> dict:
+    """The fault counts rg-replay logs at its end ({} when none were injected or it did not finish)."""
+    text = log.read_text() if log.is_file() else ""
+    i = text.rfind("faults injected: ")
+    if i < 0:
+        return {}
+    try:
+        return json.JSONDecoder().raw_decode(text[i + len("faults injected: "):])[0]
+    except ValueError:
+        return {}
 
 
 def summarise(samples: list[dict], calls: list[dict], crashed: bool) -> dict:
@@ -216,7 +245,8 @@ def summarise(samples: list[dict], calls: list[dict], crashed: bool) -> dict:
             "calls_answered_success": sum(c["success"] for c in calls),
             "latency_p95_first_s": float(np.percentile(lat[:k], 95)) if lat else float("nan"),
             "latency_p95_last_s": float(np.percentile(lat[-k:], 95)) if lat else float("nan"),
-            "crashed": crashed, "seconds": samples[-1]["t"] if samples else 0.0}
+            "crashed": crashed, "seconds": samples[-1]["t"] if samples else 0.0,
+            **{k: last.get(k) for k in ("input_errors", "sync_dropped", "tf_dropped", "rejected", "keyframes_dropped")}}
 
 
 def plot(result: dict, png: Path, title: str) -> Path:

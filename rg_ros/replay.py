@@ -13,6 +13,7 @@ subscribers acknowledged everything (bounded), instead of fixed sleeps.
 from __future__ import annotations
 
 import importlib
+import json
 import sys
 import time
 from pathlib import Path
@@ -210,28 +211,71 @@ def replay_scene(args, ros_argv: list[str]) -> int:
     tf_pub = _tf_publisher(node)   # the same pose on /tf (map -> optical frame) for pose_source tf
     log = node.get_logger()
     sent = 0
+    faults = Faults(getattr(args, "faults", 0))
     try:
         report_unmatched(log, wait_for_subscribers(pubs + ([tf_pub] if tf_pub else []), args.wait,
                                                    minimum=args.min_subscribers), args.wait, args.min_subscribers)
-        for f in _paced(frames, args):
+        for f in _paced(frames, args, faults):
             msgs = frame_messages(f, node.get_clock().now().to_msg(), args.frame_id, args.map_frame)
-            for pub, msg in zip(pubs, msgs):
+            with_pose = faults.next(msgs[3])
+            for pub, msg in zip(pubs, msgs if with_pose else msgs[:3]):
                 pub.publish(msg)
-            if tf_pub is not None:
+            if tf_pub is not None and with_pose:
                 tf_pub.publish(_pose_to_tf(msgs[3], args.frame_id))
             sent += 1
     except KeyboardInterrupt:
         pass
     finally:
-        log.info(f"published {sent} frames from {args.scene}")
+        log.info(f"published {sent} frames from {args.scene}" + (f"; faults injected: {json.dumps(faults.counts)}"
+                                                                  if faults.every else ""))
         flush_publishers(pubs + ([tf_pub] if tf_pub is not None else []))
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
 
 
-def _paced(frames: list, args):
-    """Yield the frames at args.rate Hz, once or forever (--loop), at most --count of them."""
+class Faults:
+    """--faults N: after every N frames the next fault, in turn: a frame whose pose is not a rotation
+    (quaternion 0, 0, 0, 0), a pose/TF gap (the next GAP frames without pose or TF), a burst (the next
+    BURST frames at once, unpaced). `counts` says how many of each were injected."""
+
+    KINDS = ("bad_pose", "tf_gap", "burst")
+    GAP, BURST = 10, 100
+
+    def __init__(self, every: int):
+        self.every, self.i, self.gap, self.burst = max(0, int(every or 0)), 0, 0, 0
+        self.counts = dict.fromkeys(self.KINDS, 0)
+
+    def next(self, pose) -> bool:
+        """Apply this frame's fault to `pose` (PoseStamped, in place); False: send it without pose or TF."""
+        self.i += 1
+        if self.gap:
+            self.gap -= 1
+            return False
+        if not self.every or self.i % self.every:
+            return True
+        kind = self.KINDS[sum(self.counts.values()) % len(self.KINDS)]
+        self.counts[kind] += 1
+        if kind == "bad_pose":
+            q = pose.pose.orientation
+            q.x = q.y = q.z = q.w = 0.0
+        elif kind == "tf_gap":
+            self.gap = self.GAP
+        else:
+            self.burst = self.BURST
+        return True
+
+    def unpaced(self) -> bool:
+        """True while a burst lasts (one frame used up per call)."""
+        if self.burst:
+            self.burst -= 1
+            return True
+        return False
+
+
+def _paced(frames: list, args, faults: Faults | None = None):
+    """Yield the frames at args.rate Hz, once or forever (--loop), at most --count of them; frames of a
+    fault burst go out at once."""
     next_t, sent = time.monotonic(), 0
     while True:
         for f in frames:
@@ -239,6 +283,9 @@ def _paced(frames: list, args):
             sent += 1
             if args.count and sent >= args.count:
                 return
+            if faults is not None and faults.unpaced():
+                next_t = time.monotonic()
+                continue
             next_t += 1.0 / args.rate
             time.sleep(max(0.0, next_t - time.monotonic()))
         if not args.loop:

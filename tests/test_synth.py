@@ -159,3 +159,47 @@ def test_same_category_picks_repeats_under_other_names():
         names = [e.name for e, _ in rep]
         assert len(rep) == 10 and len(set(names)) == 10, names            # repeats come under other names
         assert sum(n - 1 for n in Counter(e.category for e, _ in rep).values()) >= 1, names
+
+
+def test_room_layout_spreads_objects_over_tables_and_walks_between_them(tmp_path):
+    """layout room: objects on every table of the grid, each view looking at a table top from head
+    height, and the amodal masks the frustum test skipped are truly empty."""
+    from rg_core.synth.generator import _box_in_view, default_objects_dir, table_centres
+    from rg_core.synth.pybullet_scene import load_static_scene, mesh_aabb, render
+
+    cfg = small_synth_config(views=8, width=80, height=60, objects=6, seed=3, layout="room", tables=2,
+                             table_spacing=3.0, settle_steps=240)
+    tables = table_centres(cfg)
+    assert tables == ((-1.5, 0.0), (1.5, 0.0))
+    out = tmp_path / "room"
+    generate_scene(out, cfg, default_objects_dir(), progress=False)
+    scene = read_scene(out)
+    centres = np.array([(np.add(o.aabb_min, o.aabb_max) / 2) for o in scene.objects])
+    nearest = np.argmin(np.linalg.norm(centres[:, None, :2] - np.array(tables)[None], axis=2), 1)
+    assert sorted(np.bincount(nearest, minlength=2)) == [3, 3]                 # 3 objects on each table
+    assert (np.abs(centres[:, :2] - np.array(tables)[nearest]).max(0) < [0.75, 0.5]).all()   # on the tops
+    frames = sorted(scene.train + scene.test, key=lambda f: f.index)
+    eyes = np.array([f.cam_to_world[:3, 3] for f in frames])
+    assert ((eyes[:, 2] > 0.85) & (eyes[:, 2] < 1.35)).all()
+    assert (eyes[:4, 0] < 0).all() and (eyes[4:, 0] > 0).all()                 # the walk: one table, then the other
+    for f in frames[::3]:
+        assert np.median(f.load_depth()[f.load_depth() > 0]) < 3.0
+    # frustum test of the amodal renders: conservative (never skips an object that shows)
+    meta = json.loads((out / "synth.json").read_text())
+    from rg_core.synth.pybullet_scene import PlacedObject
+
+    placed = [PlacedObject(o["id"], str(default_objects_dir() / o["source"] / "model.urdf")
+                           if (default_objects_dir() / o["source"]).is_dir() else o["source"], o["scale"],
+                           tuple(o["position"]), tuple(o["orientation_xyzw"])) for o in meta["objects"]]
+    K = frames[0].intrinsics.K
+    skipped = 0
+    for o in placed:
+        p, cid, uids = load_static_scene([o], with_table=False)
+        box = mesh_aabb(p, cid, uids[o.object_id])
+        for f in frames:
+            if not _box_in_view(*box, K, f.cam_to_world, cfg.width, cfg.height, cfg.near):
+                skipped += 1
+                assert not (render(p, cid, K, f.cam_to_world, cfg.width, cfg.height, cfg.near, cfg.far)[2]
+                            == uids[o.object_id]).any()
+        p.disconnect(cid)
+    assert skipped > 0

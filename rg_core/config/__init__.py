@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import field
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import yaml
 from annotated_types import Interval
@@ -55,6 +55,16 @@ class SynthConfig:
     """Physics steps (240 Hz) to let dropped objects settle."""
     spread: float = 0.16
     """Half-width (m) of the square on the table where objects are dropped."""
+    layout: Literal["table", "room"] = "table"
+    """table: objects on one table, views on a ring around it. room: `tables` tables on a grid
+    `table_spacing` apart, the objects shared among them, and a camera that walks from table to
+    table (an arc around each, at a robot's head height): room-scale mapping and memory."""
+    tables: Annotated[int, Interval(ge=1)] = 4
+    """Tables of the room layout."""
+    table_spacing: Annotated[float, Interval(gt=1.6)] = 3.0
+    """Distance between neighbouring table centres (m); 4 tables 3 m apart span 4.5 x 4 m."""
+    room_spread: Annotated[float, Interval(gt=0.0, le=0.45)] = 0.32
+    """Half-width (m) of the square on each room table where its objects are dropped."""
     point_cloud_voxel: float = 0.005
     """Voxel size (m) of points3d.ply."""
     workers: int = 2

@@ -1,7 +1,7 @@
-"""`rg synth`: a table-top scene in the ReasoningGD layout, rendered headless with pybullet.
+"""`rg synth`: a table-top or room scene in the ReasoningGD layout, rendered headless with pybullet.
 
-Objects are dropped on a table and settled with physics; views on a ring of varying radius and
-height look at them. Each view gets RGB, depth (mm), visible instance ids, and one amodal mask per
+Objects are dropped on a table (layout "room": on several tables) and settled with physics; views on
+a ring of varying radius and height look at them (room: a walk from table to table, an arc around each). Each view gets RGB, depth (mm), visible instance ids, and one amodal mask per
 object (the object rendered alone). Same seed, same bytes: nothing depends on the clock, the
 machine's paths or the number of worker processes.
 """
@@ -40,13 +40,16 @@ def choose_objects(n: int, rng: np.random.Generator, objects_dir: Path | None,
                    same_category: int = 0) -> list[tuple[CatalogueEntry, str]]:
     """Pick n catalogue entries (urdf path per entry), one per category while categories last, but
     `same_category` of them from categories already picked, under other names (as far as the picked
-    categories have more: cups, bowls, screwdrivers)."""
+    categories have more: cups, bowls, screwdrivers). More objects than the shared meshes: the
+    pybullet_data ones whose names are new join the pool."""
     pool: list[tuple[CatalogueEntry, str]] = []
     if objects_dir is not None and objects_dir.is_dir():
         pool = [(e, str(objects_dir / e.folder / "model.urdf")) for e in SHARED_OBJECTS
                 if (objects_dir / e.folder / "model.urdf").is_file()]
     if not pool:
         pool = [(e, e.folder) for e in PYBULLET_OBJECTS]
+    elif n > len(pool):
+        pool += [(e, e.folder) for e in PYBULLET_OBJECTS if e.name not in {q.name for q, _ in pool}]
     order = rng.permutation(len(pool))
     chosen, seen = [], set()
     distinct = n - min(same_category, max(n - 1, 0))
@@ -91,14 +94,61 @@ def camera_ring(cfg: SynthConfig, target: np.ndarray, rng: np.random.Generator) 
     return poses
 
 
+def table_centres(cfg: SynthConfig) -> tuple[tuple[float, float], ...]:
+    """Table centres (x, y) of the layout: one at the origin, or a room's grid `table_spacing` apart."""
+    if cfg.layout != "room":
+        return ((0.0, 0.0),)
+    cols = int(np.ceil(np.sqrt(cfg.tables)))
+    rows = int(np.ceil(cfg.tables / cols))
+    return tuple((float((i % cols - (cols - 1) / 2) * cfg.table_spacing),
+                  float((i // cols - (rows - 1) / 2) * cfg.table_spacing)) for i in range(cfg.tables))
+
+
+def camera_walk(cfg: SynthConfig, tables: tuple[tuple[float, float], ...], top: float,
+                rng: np.random.Generator) -> list[np.ndarray]:
+    """A room walk: the tables visited in a loop, the views shared among them, each table seen on a
+    270-degree arc 0.9-1.3 m from its centre at 0.9-1.3 m above the floor (a robot's head height),
+    looking at the table top."""
+    poses = []
+    per = np.array_split(np.arange(cfg.views), len(tables))
+    centre = np.mean(np.asarray(tables), 0)
+    for t, idx in enumerate(per):
+        c = np.array([*tables[t], top + 0.05])
+        start = np.arctan2(*(np.asarray(tables[t]) - centre)[::-1]) - 0.75 * np.pi   # arc faces the room's middle
+        for j, _ in enumerate(idx):
+            az = start + 1.5 * np.pi * j / max(len(idx) - 1, 1) + rng.uniform(-0.02, 0.02)
+            r = rng.uniform(0.9, 1.3)
+            eye = c + np.array([r * np.cos(az), r * np.sin(az), 0.0])
+            eye[2] = rng.uniform(0.9, 1.3)
+            poses.append(look_at(eye, c + rng.uniform(-0.08, 0.08, size=3)))
+    return poses
+
+
 _WORKER: dict = {}
 
 
 def _init_worker(placed: list[PlacedObject], K: np.ndarray, cfg: SynthConfig, out: str) -> None:
-    """Load the settled scene once per process: the full scene and each object alone."""
-    p, cid, uids = load_static_scene(placed)
+    """Load the settled scene once per process: the full scene and each object alone (with its box,
+    so a view that cannot see it skips its render)."""
+    p, cid, uids = load_static_scene(placed, tables=table_centres(cfg))
     alone = {o.object_id: load_static_scene([o], with_table=False) for o in placed}
-    _WORKER.update(p=p, cid=cid, uids=uids, alone=alone, K=K, cfg=cfg, out=Path(out))
+    boxes = {oid: mesh_aabb(pa, ca, ua[oid]) for oid, (pa, ca, ua) in alone.items()}
+    _WORKER.update(p=p, cid=cid, uids=uids, alone=alone, boxes=boxes, K=K, cfg=cfg, out=Path(out))
+
+
+def _box_in_view(lo: np.ndarray, hi: np.ndarray, K: np.ndarray, c2w: np.ndarray, width: int, height: int,
+                 near: float) -> bool:
+    """Could any part of the box lo..hi [3] show in the view? Conservative: False only when all its
+    corners lie behind the near plane or all beyond one image border."""
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    cam = (corners - c2w[:3, 3]) @ c2w[:3, :3]                    # [8, 3] camera frame
+    if (cam[:, 2] <= near).all():
+        return False
+    if (cam[:, 2] <= near).any():                                 # straddles the camera plane: may show
+        return True
+    uv = cam[:, :2] / cam[:, 2:3] * np.diag(K)[:2] + K[:2, 2]
+    return not ((uv[:, 0] < 0).all() or (uv[:, 0] >= width).all() or (uv[:, 1] < 0).all()
+                or (uv[:, 1] >= height).all())
 
 
 def _close_worker() -> None:
@@ -123,8 +173,12 @@ def _render_view(item: tuple[int, np.ndarray]) -> tuple[int, np.ndarray, np.ndar
     write_depth(out / "depth" / f"{index:04d}.png", depth)
     write_mask(out / "mask_visible" / f"{index:04d}.png", visible)
     for oid, (pa, ca, ua) in w["alone"].items():
-        _, _, seg_a = render(pa, ca, K, c2w, W, H, cfg.near, cfg.far)
-        write_mask(out / "mask_complete" / f"{index:04d}" / f"{oid}.png", seg_a == ua[oid])
+        if _box_in_view(*w["boxes"][oid], K, c2w, W, H, cfg.near):
+            _, _, seg_a = render(pa, ca, K, c2w, W, H, cfg.near, cfg.far)
+            amodal = seg_a == ua[oid]
+        else:
+            amodal = np.zeros((H, W), bool)
+        write_mask(out / "mask_complete" / f"{index:04d}" / f"{oid}.png", amodal)
     step = max(1, min(W, H) // 60)
     pts = backproject(depth, K, c2w)[::step, ::step].reshape(-1, 3)
     col = rgb[::step, ::step].reshape(-1, 3)
@@ -154,11 +208,15 @@ def generate_scene(out: str | Path, cfg: SynthConfig, objects_dir: Path | None =
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(cfg.seed)
     chosen = choose_objects(cfg.objects, rng, objects_dir, cfg.same_category)
-    placed = settle([(urdf, e.scale) for e, urdf in chosen], rng, cfg.spread, cfg.settle_steps)
+    tables = table_centres(cfg)
+    placed = settle([(urdf, e.scale) for e, urdf in chosen], rng,
+                    cfg.room_spread if cfg.layout == "room" else cfg.spread, cfg.settle_steps, tables)
 
     lo, hi = table_top()
-    target = np.array([0.0, 0.0, hi[2] + 0.05])
-    poses = camera_ring(cfg, target, rng)
+    if cfg.layout == "room":
+        poses = camera_walk(cfg, tables, float(hi[2]), rng)
+    else:
+        poses = camera_ring(cfg, np.array([0.0, 0.0, hi[2] + 0.05]), rng)
     fy = (cfg.height / 2.0) / np.tan(np.radians(cfg.fov_y_deg) / 2.0)
     intr = Intrinsics(fy, fy, cfg.width / 2.0 - 0.5, cfg.height / 2.0 - 0.5, cfg.width, cfg.height)
 
@@ -190,7 +248,7 @@ def generate_scene(out: str | Path, cfg: SynthConfig, objects_dir: Path | None =
     P, C = _voxel_mean(P, C, cfg.point_cloud_voxel)
     write_ply(out / "points3d.ply", P, C)
 
-    p, cid, uids = load_static_scene(placed)
+    p, cid, uids = load_static_scene(placed, tables=tables)
     objects = []
     for o, (entry, _) in zip(placed, chosen):
         amin, amax = mesh_aabb(p, cid, uids[o.object_id])
@@ -201,6 +259,7 @@ def generate_scene(out: str | Path, cfg: SynthConfig, objects_dir: Path | None =
     write_scene_metadata(out, train, test, objects, queries)
     write_json(out / "synth.json", {
         "generator": "rg synth", "seed": cfg.seed, "views": cfg.views, "size": [cfg.width, cfg.height],
+        "layout": cfg.layout, "tables": [list(t) for t in tables],
         "objects": [{"id": o.object_id, "source": Path(o.urdf).parent.name if o.urdf.endswith("model.urdf")
                      else o.urdf, "scale": o.scale, "position": list(o.position),
                      "orientation_xyzw": list(o.orientation)} for o in placed],

@@ -79,15 +79,17 @@ def loadable_urdf(urdf: str) -> str:
     return str(out)
 
 
-def load_static_scene(objects: list[PlacedObject], with_table: bool = True):
-    """A client holding the floor, the table and the given objects at fixed poses.
+def load_static_scene(objects: list[PlacedObject], with_table: bool = True,
+                      tables: tuple[tuple[float, float], ...] = ((0.0, 0.0),)):
+    """A client holding the floor, the tables (centres x, y) and the given objects at fixed poses.
 
     Returns (pybullet module, client id, {object_id: body uid}).
     """
     p, cid = _connect()
     if with_table:
         p.loadURDF("plane.urdf", physicsClientId=cid)
-        p.loadURDF("table/table.urdf", useFixedBase=True, physicsClientId=cid)
+        for x, y in tables:
+            p.loadURDF("table/table.urdf", [x, y, 0.0], useFixedBase=True, physicsClientId=cid)
     uids = {}
     for o in objects:
         uids[o.object_id] = p.loadURDF(loadable_urdf(o.urdf), list(o.position), list(o.orientation), useFixedBase=True,
@@ -104,18 +106,20 @@ def table_top() -> tuple[np.ndarray, np.ndarray]:
     return np.array(lo), np.array(hi)
 
 
-def settle(urdfs: list[tuple[str, float]], rng: np.random.Generator, spread: float, steps: int) -> list[PlacedObject]:
-    """Drop objects onto the table and let physics settle them so they touch, lean and occlude."""
+def settle(urdfs: list[tuple[str, float]], rng: np.random.Generator, spread: float, steps: int,
+           tables: tuple[tuple[float, float], ...] = ((0.0, 0.0),)) -> list[PlacedObject]:
+    """Drop objects onto the tables (object i on table i mod T) and let physics settle them so they
+    touch, lean and occlude."""
     p, cid = _connect()
     p.setGravity(0, 0, -9.81, physicsClientId=cid)
     p.setPhysicsEngineParameter(deterministicOverlappingPairs=1, physicsClientId=cid)
     p.loadURDF("plane.urdf", physicsClientId=cid)
-    table = p.loadURDF("table/table.urdf", useFixedBase=True, physicsClientId=cid)
-    top = p.getAABB(table, physicsClientId=cid)[1][2]
+    ids = [p.loadURDF("table/table.urdf", [x, y, 0.0], useFixedBase=True, physicsClientId=cid) for x, y in tables]
+    top = p.getAABB(ids[0], physicsClientId=cid)[1][2]
     bodies = []
     for i, (urdf, scale) in enumerate(urdfs):
-        xy = rng.uniform(-spread, spread, size=2)
-        z = top + 0.06 + 0.05 * i  # staggered so later objects land on or against earlier ones
+        xy = rng.uniform(-spread, spread, size=2) + np.asarray(tables[i % len(tables)])
+        z = top + 0.06 + 0.05 * (i // len(tables))  # staggered so later objects land on or against earlier ones
         tilt = rng.uniform(-0.6, 0.6, size=2) if rng.random() < 0.3 else np.zeros(2)
         orn = p.getQuaternionFromEuler([tilt[0], tilt[1], rng.uniform(-np.pi, np.pi)])
         uid = p.loadURDF(loadable_urdf(urdf), [xy[0], xy[1], z], orn, globalScaling=scale, physicsClientId=cid)
