@@ -3,7 +3,7 @@
 - `colour_histogram`: per-pixel word frequencies in OpenCV's HSV, for ConSE's text-space colour term
   (embed.ConSEEmbedder; the fitted confidence model was measured with it).
 - `colour_term`: the one word a person would give a whole object, in CIELAB's lightness, chroma and
-  hue (LCh): the surface colour, not its shading (lightness from the lit part of the object).
+  hue (LCh, a perceptual space): the most frequent name among its pixels.
 """
 from __future__ import annotations
 
@@ -41,9 +41,10 @@ def colour_histogram(pixels: np.ndarray) -> np.ndarray:
 # blue 295 (navy 306), purple 319, pink 352.
 _HUE_SECTORS = ((50, "red"), (75, "orange"), (110, "yellow"), (200, "green"), (312, "blue"), (345, "purple"),
                 (360, "red"))
-_MIN_CHROMA = 15.0          # C* below: achromatic
-_CHROMATIC_SHARE = 0.35     # share of chromatic pixels that makes the object chromatic
-_WHITE_L, _BLACK_L = 75.0, 25.0
+_MIN_CHROMA = 12.0              # C* below: achromatic, by lightness:
+_WHITE_L, _BLACK_L = 60.0, 20.0
+_BROWN_L, _BROWN_L_DULL, _BROWN_C = 35.0, 45.0, 40.0   # warm hues darker than 35, or than 45 at C* < 40
+_PINK_L = 65.0                  # red and purple hues lighter than this
 
 
 def lch(pixels: np.ndarray) -> np.ndarray:
@@ -57,29 +58,27 @@ def lch(pixels: np.ndarray) -> np.ndarray:
 
 
 def colour_term(pixels: np.ndarray) -> str:
-    """uint8 RGB [N, 3] of one object -> a basic colour term, "light"/"dark" before a chromatic one.
+    """RGB [N, 3] (0..255) of one object -> its basic colour term, "light"/"dark" before a chromatic one.
 
-    Chromatic when >= 35 % of the pixels have C* >= 15: hue = chroma-weighted circular mean, then
-    red/orange/yellow hues darker than L* 50 are brown and light red/purple ones pink. Achromatic:
-    white / grey / black from the 75th percentile of L*, so a shaded white bowl stays white."""
+    Each pixel is named in CIELAB LCh (hue sector; brown and pink by lightness and chroma; below C*
+    12 white / grey / black by L*) and the object takes the most frequent name: a minority of
+    background pixels at its rim, or of highlights, does not change it. Light / dark: the median
+    L* of the pixels of that name above 75 / below 30. White starts at L* 60, so a white surface
+    in the shade is still white."""
     if not isinstance(pixels, np.ndarray) or pixels.ndim != 2 or pixels.shape[1] != 3 or not len(pixels):
         raise ValueError(f"colour_term: expected RGB pixels [N>0, 3], got {getattr(pixels, 'shape', type(pixels))}")
     if not np.isfinite(pixels).all():
         raise ValueError("colour_term: pixels hold NaN or inf; expected finite 0..255 RGB")
-    p = lch(np.clip(pixels, 0, 255))
-    chromatic = p[:, 1] >= _MIN_CHROMA
-    if chromatic.mean() < _CHROMATIC_SHARE:
-        light = float(np.percentile(p[:, 0], 75))
-        return "white" if light >= _WHITE_L else "black" if light < _BLACK_L else "grey"
-    c = p[chromatic]
-    ang = np.radians(c[:, 2])
-    hue = float(np.degrees(np.arctan2((c[:, 1] * np.sin(ang)).sum(), (c[:, 1] * np.cos(ang)).sum())) % 360.0)
-    light = float(np.median(c[:, 0]))
-    term = next(t for upper, t in _HUE_SECTORS if hue < upper)
-    if term in ("red", "orange", "yellow") and light < 50 and not (term == "red" and float(np.median(c[:, 1])) > 55):
-        term = "brown"
-    elif term in ("red", "purple") and light > 65:
-        term = "pink"
-    if term in ("brown", "pink"):
+    L, C, h = lch(np.clip(pixels, 0, 255)).T
+    sector = np.minimum(np.searchsorted([u for u, _ in _HUE_SECTORS], h, side="right"), len(_HUE_SECTORS) - 1)
+    names = np.array([t for _, t in _HUE_SECTORS])[sector]
+    warm = np.isin(names, ("red", "orange", "yellow"))
+    names = np.where(warm & ((L < _BROWN_L) | ((L < _BROWN_L_DULL) & (C < _BROWN_C))), "brown", names)
+    names = np.where(np.isin(names, ("red", "purple")) & (L > _PINK_L), "pink", names)
+    names = np.where(C < _MIN_CHROMA, np.where(L >= _WHITE_L, "white", np.where(L < _BLACK_L, "black", "grey")), names)
+    terms, counts = np.unique(names, return_counts=True)
+    term = str(terms[np.argmax(counts)])
+    if term not in ("red", "orange", "yellow", "green", "blue", "purple"):
         return term
+    light = float(np.median(L[names == term]))
     return f"light {term}" if light > 75 and term != "yellow" else f"dark {term}" if light < 30 else term
