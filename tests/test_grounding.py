@@ -138,3 +138,17 @@ def test_vote_border_is_measured_from_the_map(grounder):
     cfg.ground.vote_border_px = 1
     fixed = Grounder(mapper, grounder.field, cfg)
     assert fixed.vote_border() == 1
+
+
+def test_text_embeddings_kept_are_bounded(grounder, monkeypatch):
+    """Hours of distinct queries: the Grounder keeps the newest TEXT_CACHE_SIZE text embeddings, and
+    an evicted text embeds again to the same row."""
+    import rg_core.grounding.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline, "TEXT_CACHE_SIZE", 8)
+    first = grounder.encode(["query number 0"])
+    for i in range(1, 30):
+        assert grounder.encode([f"query number {i}", "query number 0"]).shape[0] == 2
+        assert len(grounder._text_cache) <= 8
+    grounder._text_cache.clear()
+    torch.testing.assert_close(grounder.encode(["query number 0"]), first)

@@ -28,6 +28,7 @@ from .result import GroundingResult
 from .vocabulary import build_vocabulary, looks_like_name
 
 log = logging.getLogger(__name__)
+TEXT_CACHE_SIZE = 4096   # query and name embeddings kept per Grounder (1.5 KB each)
 
 
 def _spread(items: list, n: int) -> list:
@@ -100,7 +101,10 @@ class Grounder:
         if todo:
             for t, e in zip(todo, self._text(todo)):
                 self._text_cache[t] = torch.nn.functional.normalize(e.float(), dim=-1)
-        return torch.stack([self._text_cache[t] for t in texts]) if texts else torch.zeros(0, 1)
+        out = torch.stack([self._text_cache[t] for t in texts]) if texts else torch.zeros(0, 1)
+        while len(self._text_cache) > TEXT_CACHE_SIZE:   # hours of distinct queries: the oldest go
+            self._text_cache.pop(next(iter(self._text_cache)))
+        return out
 
     def store_texts(self) -> int:
         """Embed the texts a query on this map needs besides the query itself (household, scene and
