@@ -3,12 +3,14 @@ the Python API use it), per stage, for maps of 2k / 20k / 100k Gaussians, explic
 queries; this code against a baseline measured in the same run (the machine may be shared).
 
     python benchmarks/bench_latency.py --map MAP --scene SCENE [--baseline-code DIR] [--sizes 2000 20000 100000]
+                                       [--tile]
                                        [--cold-repeats 2] [--out DIR] [--json] [--record]
 
 MAP: a map with a trained field (`rg demo` writes one: rg_demo/scene.rgmap; or rg map --supervise
 --train-field S); SCENE: its scene folder (queries.json: each object's explicit query and first
 implicit one). Each size is the map resized as `rg report` does (a random subset, or every
-Gaussian plus jittered copies up to 100k, latents copied), saved with the name embeddings this
+Gaussian plus jittered copies up to 100k, latents copied; --tile: whole copies side by side, a larger
+area at the same density, as a room-scale map is), saved with the name embeddings this
 code stores with a map. Baseline: `--baseline-code DIR`, a checkout of the code to compare with
 (e.g. `git worktree add /tmp/base <commit>`), run on the same map files in alternation with this
 code; without it the baseline is this code with the Grounder's map caches off (cache=False).
@@ -107,7 +109,7 @@ def cli_wall(code: Path, map_path: str, query: str, mode: str) -> dict:
 
 # ------------------------------------------------------------------------------ driver
 
-def make_maps(map_path: Path, sizes: list[int], out: Path) -> dict[int, str]:
+def make_maps(map_path: Path, sizes: list[int], out: Path, tile: bool = False) -> dict[int, str]:
     sys.path.insert(0, str(ROOT))
     from rg_core.config import RGConfig
     from rg_core.grounding.pipeline import Grounder
@@ -119,12 +121,18 @@ def make_maps(map_path: Path, sizes: list[int], out: Path) -> dict[int, str]:
         raise ValueError(f"{map_path}: the map has no feature field (rg map --supervise --train-field S)")
     paths = {}
     for n in sizes:
-        mm, f = resized_map(m, m.field, n)
+        mm, f = resized_map(m, m.field, n, tile=tile)
         mm.frames_seen = m.frames_seen
         Grounder(mm, f, RGConfig()).store_texts()
         paths[n] = str(save_map(mm, out / f"map_{n}.rgmap"))
         print(f"map of {n} Gaussians: {paths[n]}", file=sys.stderr)
     return paths
+
+
+def _med(xs) -> float:
+    """Median, NaN for none (--cold-repeats 0)."""
+    xs = list(xs)
+    return statistics.median(xs) if xs else float("nan")
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -157,7 +165,7 @@ def plot(res: dict, out_png: Path) -> None:
         for mode in ("explicit", "implicit"):
             axes[0].plot(sizes, [res["warm"][str(n)][code]["summary"][f"all_{mode}"]["median"] for n in sizes], style,
                          label=f"{code} {mode} median")
-            axes[1].plot(sizes, [statistics.median(c["wall"] for c in res["cold"][str(n)][code][mode]) for n in sizes],
+            axes[1].plot(sizes, [_med(c["wall"] for c in res["cold"][str(n)][code][mode]) for n in sizes],
                          style, label=f"{code} {mode}")
     axes[0].axhline(0.3, color="grey", lw=0.8, ls=":")
     axes[1].axhline(3.0, color="grey", lw=0.8, ls=":")
@@ -179,7 +187,7 @@ def to_rows(res: dict) -> tuple[list[dict], str]:
                 row[f"warm_{m}_median_s"] = round(s[f"all_{m}"]["median"], 3)
                 row[f"warm_{m}_p95_s"] = round(s[f"all_{m}"]["p95"], 2)
             for m in ("explicit", "implicit"):
-                row[f"cold_{m}_s"] = round(statistics.median(c["wall"] for c in cold[m]), 2)
+                row[f"cold_{m}_s"] = round(_med(c["wall"] for c in cold[m]), 2)
             row["right_targets"] = f"{s['right']}/{s['n']}"
             rows.append(row)
     return rows, (f"baseline: {res['baseline']}; warm: one Grounder kept, each query asked twice; cold: `rg ground` "
@@ -194,7 +202,7 @@ def table(res: dict) -> str:
         for code in ("baseline", "new"):
             s = res["warm"][str(n)][code]["summary"]
             cold = res["cold"][str(n)][code]
-            cw = [statistics.median(c["wall"] for c in cold[m]) for m in ("explicit", "implicit")]
+            cw = [_med(c["wall"] for c in cold[m]) for m in ("explicit", "implicit")]
             st = cold["stages_explicit"]
             lines.append(f"| {n} | {code} | {s['all_explicit']['median']:.3f} / {s['all_explicit']['p95']:.3f} | "
                          f"{s['all_implicit']['median']:.3f} / {s['all_implicit']['p95']:.3f} | "
@@ -207,7 +215,7 @@ def table(res: dict) -> str:
         w = res["warm"][str(n)]
         c = res["cold"][str(n)]
         wr = [w["new"]["summary"][f"all_{m}"]["median"] / w["baseline"]["summary"][f"all_{m}"]["median"] for m in ("explicit", "implicit")]
-        cr = [statistics.median(x["wall"] for x in c["new"][m]) / statistics.median(x["wall"] for x in c["baseline"][m])
+        cr = [_med(x["wall"] for x in c["new"][m]) / _med(x["wall"] for x in c["baseline"][m])
               for m in ("explicit", "implicit")]
         lines.append(f"| {n} | {wr[0]:.2f}, {wr[1]:.2f} | {cr[0]:.2f}, {cr[1]:.2f} |")
     return "\n".join(lines)
@@ -221,6 +229,8 @@ def main() -> int:
     ap.add_argument("--baseline-code", help="checkout of the code to compare with (default: this code, cache off)")
     ap.add_argument("--sizes", type=int, nargs="+", default=[2000, 20000, 100000])
     ap.add_argument("--cold-repeats", type=int, default=2)
+    ap.add_argument("--tile", action="store_true", help="grow a map by copies side by side (a larger area at the "
+                                                        "same density) instead of jittered copies in place")
     ap.add_argument("--queries", type=int, default=0, help="use only the first N objects' queries (0: all)")
     ap.add_argument("--out", default="bench_out/latency")
     add_output_flags(ap)
@@ -245,7 +255,7 @@ def main() -> int:
            "baseline": str(base_code) if a.baseline_code else "this code with cache=False",
            "queries": [q[:2] for q in queries], "warm": {}, "cold": {}}
     with tempfile.TemporaryDirectory() as tmp:
-        maps = make_maps(Path(a.map), a.sizes, Path(tmp))
+        maps = make_maps(Path(a.map), a.sizes, Path(tmp), a.tile)
         for n, path in maps.items():
             res["warm"][str(n)], res["cold"][str(n)] = {}, {}
             for code_name, code in (("baseline", base_code), ("new", new_code)):

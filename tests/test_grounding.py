@@ -152,3 +152,26 @@ def test_text_embeddings_kept_are_bounded(grounder, monkeypatch):
         assert len(grounder._text_cache) <= 8
     grounder._text_cache.clear()
     torch.testing.assert_close(grounder.encode(["query number 0"]), first)
+
+
+def test_a_larger_map_is_culled_around_the_reference_view(grounder, synth_scene, oracle_field):
+    """The session map tiled 4x side by side (a larger area at the same density, the keyframes in the
+    first copy): single-object queries cluster only within cull_radius of the reference mask (the
+    other copies are left out) and find the same objects, inside the first copy."""
+    from rg_core.perception.reasoning import TextReasoner
+    from rg_core.report.inputs import resized_map
+
+    field, embed = oracle_field
+    N = len(field.mapper.gaussians)
+    m, f = resized_map(field.mapper, field, 4 * N, tile=True)
+    assert len(m.gaussians) == 4 * N
+    torch.testing.assert_close(m.gaussians.means[:N], field.mapper.gaussians.means)   # copy 0 in place
+    big = Grounder(m, f, RGConfig(), reasoner=TextReasoner(), text_encoder=embed,
+                   scene_names=[o.name for o in synth_scene.objects])
+    for o in synth_scene.objects[:3]:
+        r, r0 = big.ground(o.name, mode="explicit"), grounder.ground(o.name, mode="explicit")
+        assert r.success and r.target == r0.target == o.name, r.message
+        assert r.objects[0].gaussian_ids.max() < N                                       # nothing from other copies
+    keys = [k for k in big.cache.tables["groups"]]
+    assert keys and all(k[2] is not None for k in keys)                                  # clustered over a region
+    assert np.unpackbits(np.frombuffer(keys[0][2], np.uint8))[:4 * N].sum() <= N         # at most copy 0

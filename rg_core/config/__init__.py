@@ -268,6 +268,11 @@ class GroundConfig:
     region_scales: float = 0.0
     """A single-object query clusters only Gaussians within this many s* of the reference mask's 3D
     centroid; 0 = all (several instances always use all)."""
+    cull_radius: Annotated[float, Interval(ge=0.0)] = 1.5
+    """With region_scales 0: a single-object query clusters only the Gaussians within this many
+    metres of the reference mask's 3D centroid when that leaves out more than 10 % of the map (a
+    room: 4,000 samples spread over the whole map would miss the object); a table top keeps all.
+    0 = off."""
     grow_groups: bool = True
     """Add HDBSCAN's noise Gaussians that lie within the chosen group's radius in feature space."""
     multi_instance_ratio: float = 0.9

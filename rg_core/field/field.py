@@ -360,11 +360,12 @@ class FeatureField:
         return self.instance_mlp(latent.float(), self.normalise_scale(scale))
 
     @torch.no_grad()
-    def gaussian_instance(self, scale) -> torch.Tensor:
-        """Instance feature of every Gaussian at one scale: [N, instance_dim] (for grouping)."""
+    def gaussian_instance(self, scale, idx: torch.Tensor | None = None) -> torch.Tensor:
+        """Instance feature of every Gaussian (or of those `idx` [M]) at one scale: [N or M,
+        instance_dim] (for grouping)."""
         with self.lock:
             self.sync()
-            return self.instance(self.latents, scale)
+            return self.instance(self.latents if idx is None else self.latents[idx], scale)
 
     # ---------------------------------------------------------------------------- persistence
 

@@ -131,7 +131,9 @@ def cluster_instances(features: torch.Tensor, max_points: int = 4000, min_cluste
         dg = d_own[sub_t[member] == g]
         radius[g] = torch.quantile(dg, assign_quantile) if len(dg) else 0.0
     if len(idx) < N:
-        rest = np.setdiff1d(np.arange(N), idx)
+        left = np.ones(N, bool)
+        left[idx] = False
+        rest = np.flatnonzero(left)                           # = setdiff1d(arange(N), idx), without its sort
         sim = f[torch.from_numpy(rest)] @ centres.T           # [R, G]
         best, arg = sim.max(-1)
         ok = (1.0 - best) <= radius[arg] + 1e-6

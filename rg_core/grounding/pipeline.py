@@ -208,27 +208,29 @@ class Grounder:
 
         def make() -> Groups:
             g = self.gcfg
+            idx = None if region is None else torch.from_numpy(np.nonzero(region)[0])   # [M]
             with torch_threads(self._outer_threads):
-                feats = self.field.gaussian_instance(scale)                     # [N, Di]
+                feats = self.field.gaussian_instance(scale, idx)                # [N or M, Di]: the region's only
             if region is None:
                 out = cluster_instances(feats, g.max_cluster_points, g.min_cluster_size, g.cluster_eps,
                                         seed=g.seed, method=g.cluster_method)
             else:
-                idx = np.nonzero(region)[0]
-                sub = cluster_instances(feats[torch.from_numpy(idx)], g.max_cluster_points, g.min_cluster_size,
+                sub = cluster_instances(feats, g.max_cluster_points, g.min_cluster_size,
                                         g.cluster_eps, seed=g.seed, method=g.cluster_method)
                 labels = np.full(N, -1, np.int64)
-                labels[idx] = sub.labels
-                full = torch.zeros_like(feats)
-                full[torch.from_numpy(idx)] = sub.features
+                labels[idx.numpy()] = sub.labels
+                full = torch.zeros(N, feats.shape[1], dtype=feats.dtype)
+                full[idx] = sub.features
                 out = Groups(labels, sub.centres, sub.clustered, sub.seconds, sub.radius, full)
             return out
         return self.cache.get("groups", key, make)
 
     def region(self, kf, mask: np.ndarray, depth: torch.Tensor, alpha: torch.Tensor, scale: float) -> np.ndarray | None:
         """Gaussians that can belong to the reference mask's object: within `region_scales` x s* of
-        the 3D centroid of the mask (back-projected with the rendered depth). None: no depth there."""
-        if self.gcfg.region_scales <= 0 or mask.shape != tuple(depth.shape):
+        the 3D centroid of the mask (back-projected with the rendered depth), else within
+        `cull_radius` m of it when that leaves out > 10 % of the map. None: all (no depth there)."""
+        g = self.gcfg
+        if (g.region_scales <= 0 and g.cull_radius <= 0) or mask.shape != tuple(depth.shape):
             return None
         sel = torch.from_numpy(mask) & (alpha > self.gcfg.mask_alpha) & (depth > 0)
         if int(sel.sum()) < 3:
@@ -236,7 +238,10 @@ class Grounder:
         pts = backproject(depth.numpy(), np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64))
         centre = torch.from_numpy(pts[sel.numpy()]).median(0).values.float()        # [3] world
         d = (self.mapper.gaussians.means.detach() - centre).norm(dim=-1)
-        return (d <= self.gcfg.region_scales * max(scale, 1e-3)).numpy()
+        if g.region_scales > 0:
+            return (d <= g.region_scales * max(scale, 1e-3)).numpy()
+        near = (d <= g.cull_radius).numpy()
+        return near if g.min_cluster_size <= near.sum() < 0.9 * len(near) else None
 
     def spacing(self) -> float:
         """The map's median nearest-neighbour distance between Gaussians (m), cached until the map

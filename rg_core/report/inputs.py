@@ -71,9 +71,12 @@ class SeedEverywhereMapper(Mapper):
 
 
 @torch.no_grad()
-def resized_map(mapper: Mapper, field, n: int, seed: int = 0):
+def resized_map(mapper: Mapper, field, n: int, seed: int = 0, tile: bool = False):
     """A copy of (mapper, field) with exactly n Gaussians: a random subset when n is smaller, else
-    every Gaussian plus copies of random ones jittered by half their scale (latent copied too)."""
+    every Gaussian plus copies of random ones jittered by half their scale (latent copied too).
+    tile: the copies are whole copies of the map instead, side by side on a square grid in the map's
+    x-y plane, 1.5 x its extent apart (the last one partial): a larger area at the same density,
+    what a robot's room-scale map is, with the keyframes of the first copy only."""
     from ..field import FeatureField
 
     if n < 1:
@@ -84,6 +87,14 @@ def resized_map(mapper: Mapper, field, n: int, seed: int = 0):
     if n <= N:
         idx = torch.randperm(N, generator=rng)[:n].sort().values                 # [n]
         jitter = torch.zeros(n, 3)
+    elif tile:
+        copies = -(-n // N)
+        side = int(np.ceil(np.sqrt(copies)))
+        means = g.means.detach()
+        step = 1.5 * float((means.max(0).values - means.min(0).values)[:2].max().clamp(min=0.1))
+        idx = torch.arange(n) % N                                                # [n]
+        k = torch.arange(n) // N                                                 # copy of each row
+        jitter = torch.stack([(k % side).float() * step, (k // side).float() * step, torch.zeros(n)], 1)
     else:
         extra = torch.randint(0, N, (n - N,), generator=rng)
         idx = torch.cat([torch.arange(N), extra])                                # [n]
