@@ -135,7 +135,7 @@ class MapConfig:
     """Opacity of new Gaussians."""
     max_keyframes: Annotated[int, Interval(ge=0)] = 120
     """Memory bound on keyframes (images, depth and their supervision masks, ~10 MB each at 320 px;
-    0: none). Past it the most redundant keyframe goes (Mapper.drop_redundant_keyframe: the one whose
+    0: none). At it, a new keyframe first makes room: the most redundant keyframe goes (Mapper.drop_redundant_keyframe: the one whose
     pose is nearest another keyframe's, never one of the newest `window`), with its supervision;
     its Gaussians stay."""
     kf_new_fraction: float = 0.04

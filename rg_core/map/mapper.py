@@ -153,6 +153,9 @@ class Mapper:
             return res
         res.keyframe = True
         kf = Keyframe(index, fr.stamp, fr.cam_to_world, fr.K, rgb_t, depth_t)
+        while self.cfg.max_keyframes and len(self.keyframes) >= self.cfg.max_keyframes:
+            if self.drop_redundant_keyframe() is None:     # room first: the count never passes the budget
+                break
         self.keyframes.append(kf)
         res.added, res.dropped = self._seed(fr, unexplained)
         t3 = time.perf_counter()
@@ -163,7 +166,8 @@ class Mapper:
         t4 = time.perf_counter()
         res.pruned = self._prune()
         while self.cfg.max_keyframes and len(self.keyframes) > self.cfg.max_keyframes:
-            self.drop_redundant_keyframe()
+            if self.drop_redundant_keyframe() is None:
+                break
         t5 = time.perf_counter()
         for k, dt in (("seed", t3 - t2), ("optimise", t4 - t3), ("prune", t5 - t4)):
             self.seconds[k] += dt
