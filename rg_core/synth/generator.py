@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import SynthConfig
-from ..geometry.conventions import backproject, look_at
+from ..geometry.conventions import backproject, look_at, project
 from ..io.images import write_depth, write_mask, write_rgb
 from ..io.ply import write_ply
 from ..io.scene import Frame, Intrinsics, Query, SceneObject, write_json, write_scene_metadata
@@ -141,12 +141,12 @@ def _box_in_view(lo: np.ndarray, hi: np.ndarray, K: np.ndarray, c2w: np.ndarray,
     """Could any part of the box lo..hi [3] show in the view? Conservative: False only when all its
     corners lie behind the near plane or all beyond one image border."""
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    cam = (corners - c2w[:3, 3]) @ c2w[:3, :3]                    # [8, 3] camera frame
-    if (cam[:, 2] <= near).all():
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv, z = project(corners, np.asarray(K, np.float64), np.asarray(c2w, np.float64))   # [8, 2], [8]
+    if (z <= near).all():
         return False
-    if (cam[:, 2] <= near).any():                                 # straddles the camera plane: may show
+    if (z <= near).any():                                         # straddles the camera plane: may show
         return True
-    uv = cam[:, :2] / cam[:, 2:3] * np.diag(K)[:2] + K[:2, 2]
     return not ((uv[:, 0] < 0).all() or (uv[:, 0] >= width).all() or (uv[:, 1] < 0).all()
                 or (uv[:, 1] >= height).all())
 
