@@ -4,14 +4,17 @@ import logging
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
 from rg_core.config import MapConfig
 from rg_core.eval.mapping import evaluate_views
 from rg_core.geometry.conventions import project
+from rg_core.geometry.rotations import pose_distances
 from rg_core.map.frames import FrameError
-from rg_core.map.mapper import Mapper
+from rg_core.map.mapper import Keyframe, Mapper
 from rg_core.map.run import stream_frames
 from rg_core.map.store import MapFileError, load_map, save_map
+from rg_core.perception.supervision import KeyframeSupervision, SupervisionSet
 from rg_core.render import EPS2D, rasterize
 
 SMALL = dict(width=160, iters_per_keyframe=12)
@@ -72,6 +75,34 @@ def test_second_pass_barely_grows_the_map(synth_scene):
     assert all("already mapped" in r.reason for r in results if not r.keyframe)
 
 
+def test_revisited_view_replaces_its_keyframe(synth_scene):
+    """A looped route (every frame a keyframe here) keeps one keyframe per view: the second visit of
+    a view replaces the first with its supervision; kf_revisit 0 keeps both."""
+    views = synth_scene.train[:4]
+    loop = [frame_args(f) for f in views] + [(rgb, d, K, c2w, s + 100.0) for rgb, d, K, c2w, s in map(frame_args, views)]
+    mapper = Mapper(MapConfig(**SMALL, kf_new_fraction=-1.0))
+    mapper.supervision = sset = SupervisionSet()
+    res = []
+    for i, args in enumerate(loop):
+        res.append(mapper.add_frame(*args))
+        sset.add(mapper.keyframes[-1].index, KeyframeSupervision(
+            np.zeros((1, 2, 2), bool), np.ones(1, np.float32), np.ones(1, np.int8), np.ones(1, np.float32), torch.randn(1, 8)))
+    assert all(r.keyframe for r in res) and [r.replaced for r in res] == [None] * 4 + [0, 1, 2, 3]
+    assert "replaces keyframe 0 at the same view" in res[4].reason
+    assert [k.index for k in mapper.keyframes] == [4, 5, 6, 7] and set(sset.by_keyframe) == {4, 5, 6, 7}
+    assert mapper.totals["keyframes_replaced"] == 4 and [k.stamp for k in mapper.keyframes] == [a[4] for a in loop[4:]]
+    off = Mapper(MapConfig(**SMALL, kf_new_fraction=-1.0, kf_revisit=0.0))
+    assert sum(off.add_frame(*args).replaced is not None for args in loop) == 0 and len(off.keyframes) == 8
+
+
+def test_pose_distances_orders_views_by_overlap():
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    poses[1, 0, 3] = 0.5                                                  # 0.5 m away
+    poses[2, :3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()   # a quarter turn
+    np.testing.assert_allclose(pose_distances(poses, np.eye(4)), [0.0, 0.5, 0.3 * np.pi / 2], atol=1e-9)
+    np.testing.assert_allclose(pose_distances(poses, np.eye(4), metres_per_radian=0.0), [0.0, 0.5, 0.0], atol=1e-9)
+
+
 def test_memory_bound_reports_dropped(synth_scene):
     mapper = Mapper(MapConfig(width=160, iters_per_keyframe=2, max_gaussians=300, evict=False))
     results = [mapper.add_frame(*frame_args(f)) for f in synth_scene.train[:4]]
@@ -122,11 +153,6 @@ def test_memory_bound_evicts_for_a_new_area_and_spares_protected_boxes(synth_sce
 def test_keyframe_budget_drops_the_most_redundant_view_with_its_supervision(synth_scene):
     """Past max_keyframes the keyframe nearest another one in pose goes (never the newest window),
     with its supervision and PCA rows; its Gaussians stay and the map keeps rendering its view."""
-    from scipy.spatial.transform import Rotation
-
-    from rg_core.map.mapper import Keyframe
-    from rg_core.perception.supervision import KeyframeSupervision, SupervisionSet
-
     mapper = Mapper(MapConfig(width=160, window=2, max_keyframes=4))
     sset = mapper.supervision = SupervisionSet(pca_dim=4)
 

@@ -36,3 +36,12 @@ def rot_to_quat(R) -> np.ndarray:
     q = Rotation.from_matrix(R).as_quat()
     q /= np.linalg.norm(q)
     return -q if q[3] < 0 else q
+
+
+def pose_distances(poses: np.ndarray, pose: np.ndarray, metres_per_radian: float = 0.3) -> np.ndarray:
+    """How far each of poses [N, 4, 4] is from pose [4, 4]: translation (m) + metres_per_radian x
+    the relative rotation angle (rad), one number that orders views by overlap. -> [N]."""
+    poses = np.asarray(poses, dtype=np.float64)
+    pose = np.asarray(pose, dtype=np.float64)
+    ang = (Rotation.from_matrix(pose[:3, :3]).inv() * Rotation.from_matrix(poses[:, :3, :3])).magnitude()
+    return np.linalg.norm(poses[:, :3, 3] - pose[:3, 3], axis=1) + metres_per_radian * ang

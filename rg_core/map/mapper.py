@@ -18,6 +18,7 @@ import torch
 
 from ..config import MapConfig
 from ..geometry.conventions import scale_intrinsics
+from ..geometry.rotations import pose_distances
 from ..render import EPS2D, Camera, RenderOutput, rasterize
 from .frames import PreparedFrame, downscale_depth, prepare_frame
 from .gaussians import PARAMS, GaussianModel, ResizableAdam
@@ -67,6 +68,7 @@ class FrameResult:
     pruned: int = 0
     unexplained: float = 0.0    # fraction of valid depth pixels the map did not explain
     photometric_error: float = 0.0
+    replaced: int | None = None  # index of the keyframe this one replaced (same view: MapConfig.kf_revisit)
     seconds: dict = field(default_factory=dict)
 
 
@@ -82,7 +84,7 @@ class Mapper:
         self.frames_seen = 0
         self.last_stamp: float | None = None
         self.totals = {"added": 0, "dropped": 0, "pruned": 0, "evicted": 0, "out_of_order": 0, "keyframe_iters": 0,
-                       "keyframes_dropped": 0}
+                       "keyframes_dropped": 0, "keyframes_replaced": 0}
         self.protected: list[tuple[np.ndarray, np.ndarray]] = []   # boxes (lo, hi) eviction never touches
         self.seconds = {"prepare": 0.0, "check": 0.0, "seed": 0.0, "optimise": 0.0, "prune": 0.0, "refine": 0.0}
         self._rng = torch.Generator().manual_seed(self.cfg.seed)
@@ -153,6 +155,14 @@ class Mapper:
             return res
         res.keyframe = True
         kf = Keyframe(index, fr.stamp, fr.cam_to_world, fr.K, rgb_t, depth_t)
+        if self.keyframes and self.cfg.kf_revisit > 0 and not res.reason.startswith(f"{len(self.keyframes)} keyframe"):
+            d = pose_distances(np.stack([k.cam_to_world for k in self.keyframes]), fr.cam_to_world)   # [N]
+            j = int(np.argmin(d))
+            if d[j] <= self.cfg.kf_revisit:
+                old = self._remove_keyframe(j)
+                res.replaced = old.index
+                self.totals["keyframes_replaced"] += 1
+                res.reason += f"; replaces keyframe {old.index} at the same view ({d[j]:.3f} m-equivalent)"
         while self.cfg.max_keyframes and len(self.keyframes) >= self.cfg.max_keyframes:
             if self.drop_redundant_keyframe() is None:     # room first: the count never passes the budget
                 break
@@ -375,25 +385,24 @@ class Mapper:
         its nearest other keyframe (translation + metres_per_radian x rotation angle; ties: the
         oldest). The newest `window` keyframes (the optimisation window) stay, and so does the last
         one left. Its supervision goes with it; its Gaussians stay. Returns it (None: none could go)."""
-        from scipy.spatial.transform import Rotation
-
         kfs = self.keyframes
         n_cand = len(kfs) - min(self.cfg.window, len(kfs) - 1)
         if len(kfs) < 2 or n_cand <= 0:
             return None
         poses = np.stack([kf.cam_to_world for kf in kfs])                  # [N, 4, 4]
-        t = poses[:, :3, 3]
-        rots = Rotation.from_matrix(poses[:, :3, :3])
         best, victim = np.inf, None
         for i in range(n_cand):
-            ang = (rots[i].inv() * rots).magnitude()                       # [N] radians
-            d = np.linalg.norm(t - t[i], axis=1) + metres_per_radian * ang
+            d = pose_distances(poses, poses[i], metres_per_radian)          # [N]
             d[i] = np.inf
             if d.min() < best:
                 best, victim = float(d.min()), i
         if victim is None:
             return None
-        kf = kfs.pop(victim)
+        return self._remove_keyframe(victim)
+
+    def _remove_keyframe(self, i: int) -> Keyframe:
+        """Take keyframe i out with its supervision (its Gaussians stay); counted as dropped."""
+        kf = self.keyframes.pop(i)
         if self.supervision is not None:
             self.supervision.remove(kf.index)
         self.totals["keyframes_dropped"] = self.totals.get("keyframes_dropped", 0) + 1
