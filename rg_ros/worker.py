@@ -9,7 +9,10 @@ idle it does small slices of background work, in this order: supervision of new 
 
 One re-entrant lock (`MapWorker.lock`) is held around every map mutation and read that must see a
 consistent map: add_frame, supervision, field training, refinement, reset, save, grounding, masks
-and map snapshots. The perception models (mask generator, embedder; ~10 s to load) load in a
+and map snapshots. Callers go first: while one waits for the lock (`_acquire`), the thread starts
+no new frame or slice, so a query waits for at most the one step in progress, not for every slice
+of a long background job (a released lock is otherwise often re-taken by the thread that released
+it). The perception models (mask generator, embedder; ~10 s to load) load in a
 helper thread started with the worker, so mapping never waits for them.
 """
 from __future__ import annotations
@@ -105,6 +108,10 @@ class MapWorker:
         self.wcfg = wcfg or WorkerConfig()
         self.log = logger or log
         self.lock = threading.RLock()
+        self._callers = 0                       # threads waiting in _acquire: the worker gives way
+        self._callers_lock = threading.Lock()
+        self._no_callers = threading.Event()
+        self._no_callers.set()
         self.queue = FrameQueue(self.wcfg.queue_size)
         self.mapper = mapper if mapper is not None else Mapper(self.cfg.map)
         self.field = getattr(self.mapper, "field", None)
@@ -163,6 +170,8 @@ class MapWorker:
             busy = False
             while not self._stop.is_set():
                 frame = self.queue.get(timeout=0 if busy else self.wcfg.idle_wait)
+                while not self._no_callers.wait(0.1) and not self._stop.is_set():
+                    pass                                # a caller waits for the lock: let it in first
                 if self._stop.is_set():
                     break
                 if frame is not None:
@@ -289,24 +298,41 @@ class MapWorker:
     def reset(self) -> None:
         """Empty the map (and the queue: its frames count as dropped); perception models stay loaded.
         The frame counters live as long as the worker: mapped + rejected + dropped + queued = received."""
-        with self.lock:
+        self._acquire(0)
+        try:
             self.queue.clear()
             self.mapper = Mapper(self.cfg.map)
             self.field, self._grounder = None, None
             self._train_seconds, self._train_blocked, self._supervised_count = 0.0, "", 0
             self._refined_iters = 0
             self.last_error, self.last_result = "", {}
+        finally:
+            self.lock.release()
 
     def save(self, path: str | Path) -> Path:
         from rg_core.map.store import save_map
 
-        with self.lock:
+        self._acquire(0)
+        try:
             if self.field is not None and hasattr(self.field, "sync"):
                 self.field.sync()   # the field follows Gaussians added or pruned since its last step
             return save_map(self.mapper, path)
+        finally:
+            self.lock.release()
 
     def _acquire(self, timeout: float) -> bool:
-        return self.lock.acquire(timeout=timeout if timeout > 0 else -1)
+        """Take the map lock ahead of the worker thread (it starts nothing new while a caller waits);
+        timeout <= 0 waits as long as it takes. False: not acquired in time."""
+        with self._callers_lock:
+            self._callers += 1
+            self._no_callers.clear()
+        try:
+            return self.lock.acquire(timeout=timeout if timeout > 0 else -1)
+        finally:
+            with self._callers_lock:
+                self._callers -= 1
+                if self._callers == 0:
+                    self._no_callers.set()
 
     def ground(self, query: str, mode: str = "auto", max_results: int = 1, timeout: float = 30.0,
                cam_to_world: np.ndarray | None = None) -> GroundingResult:

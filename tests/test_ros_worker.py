@@ -171,3 +171,23 @@ def test_reset_counts_the_frames_it_clears_as_dropped():
     w.reset()
     st = w.stats()
     assert st["queue"] == 0 and st["dropped"] == 3 and st["received"] == 3 and st["mapped"] == 0
+
+
+def test_a_waiting_caller_goes_before_new_work(worker):
+    """While a service call waits for the map lock the worker starts no new frame or slice: the
+    query waits for the step in progress only. Simulated by a caller holding its place in line."""
+    worker.start()
+    with worker._callers_lock:                   # what _acquire does while it waits for the lock
+        worker._callers += 1
+        worker._no_callers.clear()
+    for i in range(3):
+        worker.submit(make_frame(float(i), x=0.3 * i))
+    time.sleep(0.5)                              # would map the first frames if the worker did not give way
+    assert worker.processed == 0 and len(worker.queue) >= 2   # one may be taken, but it waits too
+    with worker._callers_lock:
+        worker._callers -= 1
+        worker._no_callers.set()
+    assert wait_for(lambda: worker.processed + worker.rejected == 3)
+    assert worker._acquire(5.0)                  # a real caller gets the lock and gives way again
+    worker.lock.release()
+    assert worker._callers == 0 and worker._no_callers.is_set()
