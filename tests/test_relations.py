@@ -252,3 +252,74 @@ def test_an_exact_name_beats_its_category_as_anchor():
     cups = [obj("orange cup", "yellow", (0, 0, 0), (0.1, 0.1, 0.1), conf=0.5),
             obj("yellow cup", "orange", (1, 0, 0), (1.1, 0.1, 0.1), conf=0.9)]
     assert _ask("the orange cup", cups).target == "orange cup"     # the name says it, ahead of a measured colour
+
+
+def _fields(**over):
+    base = dict(target="", colour="", relation="", anchors=[], superlative="", ordinal=0, side="", count=False,
+                every=False)
+    return {**base, **over}
+
+
+@pytest.mark.parametrize("data, want", [
+    (_fields(target="Cups", colour="red", count=True), Relational("cup", "red", count=True)),
+    (_fields(target="the mug", relation="near", anchors=["the laptop"]), Relational("mug", relation="near", anchors=["laptop"])),
+    (_fields(target="object", relation="between", anchors=["apple", "bananas"]),
+     Relational("", relation="between", anchors=["apple", "banana"])),
+    (_fields(target="screwdriver", ordinal=2, side="left"), Relational("screwdriver", ordinal=2, side="left")),
+    (_fields(superlative="biggest"), Relational("", superlative="biggest")),
+    (_fields(target="coffee mug"), None),                        # a plain name: the usual path
+    ({"target": "cup", "colour": "blue"}, Relational("cup", "blue")),   # missing keys: their empty values
+])
+def test_llm_parser_answers_become_the_rule_parsers_fields(data, want):
+    from rg_core.grounding.phrases import from_fields
+
+    assert from_fields(data) == want
+
+
+@pytest.mark.parametrize("data, message", [
+    ([], "expected a JSON object"),
+    (_fields(target="cup", relation="beside", anchors=["bowl"]), "relation 'beside' is not one of"),
+    (_fields(target="cup", relation="between", anchors=["bowl"]), "takes 2 anchor(s), got 1"),
+    (_fields(target="cup", relation="near", anchors=[]), "takes 1 anchor(s), got 0"),
+    (_fields(target="cup", anchors=["bowl"]), "relation 'none' takes 0 anchor(s)"),
+    (_fields(target="cup", ordinal=2), "ordinal 2 and side '' go together"),
+    (_fields(target="cup", ordinal=99, side="left"), "outside -1..20"),
+    (_fields(target="cup", count="yes"), "count is str 'yes', expected boolean"),
+    (_fields(target="cup", ordinal=True, side="left"), "ordinal is bool"),
+    (_fields(target="cup", colour="magenta"), "colour 'magenta' is not one of"),
+    ({**_fields(target="cup"), "mood": "happy"}, "unknown key(s) ['mood']"),
+    (_fields(target="cup", relation="near", anchors=["  "]), "anchors must be object names"),
+    (_fields(target="cup", relation="near", anchors=[3]), "anchors must be object names"),
+])
+def test_llm_parser_answers_that_break_the_schema_are_refused(data, message):
+    from rg_core.grounding.phrases import from_fields
+
+    with pytest.raises(ValueError) as exc:
+        from_fields(data)
+    assert message in str(exc.value)
+
+
+def test_llm_parse_option_falls_back_to_the_rules_when_the_model_is_unreachable(oracle_field, synth_scene, grounder):
+    """reason.llm_parse with an OpenAI endpoint nobody serves: the rule parser answers, the same
+    objects as without the option, and the explanation says why."""
+    import socket
+
+    from rg_core.config import RGConfig
+    from rg_core.grounding.pipeline import Grounder
+    from rg_core.perception.reasoning import TextReasoner
+    from rg_core.perception.reasoning.llm import OpenAIChatReasoner
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    field, embed = oracle_field
+    cfg = RGConfig()
+    cfg.reason.llm_parse = True
+    llm = OpenAIChatReasoner(base_url=f"http://127.0.0.1:{port}/v1", timeout_s=5, fallback=TextReasoner())
+    g = Grounder(field.mapper, field, cfg, reasoner=llm, text_encoder=embed, scene_names=[o.name for o in synth_scene.objects])
+    query = f"the object closest to the {synth_scene.objects[0].name}"
+    r, plain = g.ground(query), grounder.ground(query)
+    assert r.success == plain.success and [o.gaussian_ids.tolist() for o in r.objects] == \
+        [o.gaussian_ids.tolist() for o in plain.objects]
+    assert "openai parse unusable (connection failed" in r.explanation and "parsed by rules" in r.explanation, r.explanation
+    assert "parse unusable" not in plain.explanation

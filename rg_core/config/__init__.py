@@ -363,6 +363,10 @@ class ReasonConfig:
     """The endpoint's model takes the reference view as an image."""
     gguf_path: str = ""
     """llama_cpp model file; empty = the packaged SmolLM2-135M."""
+    llm_parse: bool = False
+    """With an LLM backend (openai, llama_cpp): the model parses relational queries ("the red cup
+    left of the bowl") into the rule parser's fields (grounding/phrases.py, checked against its
+    vocabulary of relations); an unusable answer falls back to the rule parser, which is the default."""
     clip_model_path: str = ""
     """llama_cpp LLaVA projector; set it to pass the reference view."""
     extra_vocabulary: list[str] = field(default_factory=list)

@@ -10,6 +10,7 @@ of / under / above the Y", and colour words before the target ("the red cup"); l
 """
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import dataclass, field
 
@@ -53,6 +54,7 @@ class Relational:
     ordinal: int = 0                   # the Nth from `side` (-1: the last)
     side: str = ""                     # left | right (with ordinal)
     every: bool = False                # "all the X": every match
+    note: str = field(default="", compare=False)   # how it was parsed, when not by the rules alone
 
     @property
     def attribute_only(self) -> bool:
@@ -72,6 +74,8 @@ class Relational:
             parts.append("count")
         if self.every:
             parts.append("all matches")
+        if self.note:
+            parts.append(self.note)
         return "; ".join(parts)
 
 
@@ -186,3 +190,81 @@ def parse(query: str) -> Relational | None:
     if c and len(q.split()) <= 4:   # "the red cup": a colour and a name (callers check it is not one name)
         return Relational(t, c)
     return None
+
+
+# ------------------------------------------------------------------------------ the LLM parser option
+
+_REL_NAMES = sorted(set(RELATIONS.values()))
+_SUP_NAMES = sorted(set(SUPERLATIVES.values()) | {"nearest_camera"})
+LLM_PARSE_PROMPT = (
+    "You turn a request for objects in a 3D scene into JSON. Reply with one JSON object and nothing else, "
+    "with the keys: target (the object name sought, singular, no article; \"\" for any object), colour (one of "
+    f"{json.dumps(list(COLOUR_TERMS))} or \"\"), relation (one of {json.dumps(_REL_NAMES)} or \"\"), anchors "
+    "(the names of the objects the relation refers to: two for between, one for the others, none without a "
+    f"relation), superlative (one of {json.dumps(_SUP_NAMES)} or \"\"), ordinal (N for the Nth from the left or "
+    "right, -1 for the last, 1 for leftmost or rightmost, else 0), side (\"left\", \"right\" or \"\"), count (true "
+    "for how many), every (true for all the ...). Example: \"the second red cup from the left\" -> "
+    '{"target": "cup", "colour": "red", "relation": "", "anchors": [], "superlative": "", "ordinal": 2, '
+    '"side": "left", "count": false, "every": false}.')
+LLM_PARSE_SCHEMA = {
+    "type": "object",
+    "required": ["target", "colour", "relation", "anchors", "superlative", "ordinal", "side", "count", "every"],
+    "properties": {"target": {"type": "string"}, "colour": {"type": "string", "enum": ["", *COLOUR_TERMS]},
+                   "relation": {"type": "string", "enum": ["", *_REL_NAMES]},
+                   "anchors": {"type": "array", "items": {"type": "string"}, "maxItems": 2},
+                   "superlative": {"type": "string", "enum": ["", *_SUP_NAMES]},
+                   "ordinal": {"type": "integer", "minimum": -1, "maximum": 20},
+                   "side": {"type": "string", "enum": ["", "left", "right"]},
+                   "count": {"type": "boolean"}, "every": {"type": "boolean"}}}
+
+
+def from_fields(data: dict) -> Relational | None:
+    """An LLM parser's JSON answer (LLM_PARSE_SCHEMA) -> Relational, checked as strictly as the rule
+    parser's own output; None when it asks for a plain name or description. ValueError says what
+    was wrong (the caller then falls back to `parse`)."""
+    if not isinstance(data, dict):
+        raise ValueError(f"expected a JSON object, got {type(data).__name__}")
+    props = LLM_PARSE_SCHEMA["properties"]
+    unknown = sorted(set(data) - set(props))
+    if unknown:
+        raise ValueError(f"unknown key(s) {unknown}; expected {sorted(props)}")
+    kinds = {"string": str, "boolean": bool, "array": list}
+    for key, spec in props.items():
+        v = data.get(key, {"string": "", "array": [], "boolean": False, "integer": 0}[spec["type"]])
+        ok = (type(v) is int) if spec["type"] == "integer" else isinstance(v, kinds[spec["type"]])
+        if not ok:
+            raise ValueError(f"{key} is {type(v).__name__} {v!r}, expected {spec['type']}")
+        if "enum" in spec and v not in spec["enum"]:
+            raise ValueError(f"{key} {v!r} is not one of {spec['enum'][1:]}")
+        data = {**data, key: v}
+    if not -1 <= data["ordinal"] <= 20:
+        raise ValueError(f"ordinal {data['ordinal']} is outside -1..20")
+    anchors = [_singular(_strip(a.lower())) if isinstance(a, str) else "" for a in data["anchors"]]
+    if not all(anchors):
+        raise ValueError(f"anchors must be object names, got {data['anchors']!r}")
+    need = 2 if data["relation"] == "between" else 1 if data["relation"] else 0
+    if len(anchors) != need:
+        raise ValueError(f"relation {data['relation'] or 'none'!r} takes {need} anchor(s), got {len(anchors)}")
+    if bool(data["ordinal"]) != bool(data["side"]):
+        raise ValueError(f"ordinal {data['ordinal']} and side {data['side']!r} go together")
+    target = _strip(data["target"].lower())
+    if len(target) > 100:
+        raise ValueError(f"target of {len(target)} characters is not an object name")
+    rq = Relational("" if target in ANY else _singular(target), data["colour"], data["relation"], anchors,
+                    data["superlative"], data["count"], data["ordinal"], data["side"], data["every"])
+    return None if rq.attribute_only and not rq.colour else rq
+
+
+def parse_with(reasoner, query: str) -> tuple[Relational | None, str]:
+    """(parse, how it was parsed): the reasoner's LLM when it has one (`ask_json`), else or when its
+    answer is unusable, the rule parser; the note goes into the explanation."""
+    if not hasattr(reasoner, "ask_json"):
+        return parse(query), ""
+    try:
+        rq, note = from_fields(reasoner.ask_json(LLM_PARSE_PROMPT, query, LLM_PARSE_SCHEMA)), f"parsed by the {reasoner.name} model"
+    except Exception as exc:  # noqa: BLE001 - any failure of the model means: the rule parser
+        why = reasoner.describe(exc) if hasattr(reasoner, "describe") else f"{type(exc).__name__}: {exc}"
+        rq, note = parse(query), f"{reasoner.name} parse unusable ({why}); parsed by rules"
+    if rq is not None:
+        rq.note = note
+    return rq, note

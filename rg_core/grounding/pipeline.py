@@ -339,7 +339,9 @@ class Grounder:
             res = self._ground(name, mode, max_results, view)
             res.query = query
             return res
-        rq = phrases.parse(query) if mode != "explicit" and name is None else None
+        rq = None
+        if mode != "explicit" and name is None:
+            rq = phrases.parse_with(self.reasoner, query)[0] if self.cfg.reason.llm_parse else phrases.parse(query)
         if rq is not None:   # about objects in relation to others: over the scene graph
             s = time.perf_counter()
             objs = self.scene_graph()

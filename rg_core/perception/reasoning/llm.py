@@ -142,9 +142,25 @@ class LLMReasoner(Reasoner):
         self.min_name_similarity, self.max_tokens = min_name_similarity, max_tokens
         self.fallback = fallback or TextReasoner(max_query_chars=max_query_chars, **text_kwargs)
 
-    def complete(self, messages: list[dict], vocabulary: list[str], deadline: float) -> str:
-        """The model's answer text; raises AnswerError (or OSError/TimeoutError) when it has none."""
+    def complete(self, messages: list[dict], schema: dict, deadline: float) -> str:
+        """The model's answer text, a JSON object meant to follow `schema`; raises AnswerError (or
+        OSError/TimeoutError) when it has none."""
         raise NotImplementedError
+
+    def ask_json(self, system: str, user: str, schema: dict) -> dict:
+        """One structured question to the model: the JSON object it answers (not yet checked
+        against `schema` beyond being an object). Raises AnswerError, OSError or TimeoutError;
+        `describe` turns any of them into a reason."""
+        if not isinstance(user, str) or not user.strip() or len(user) > self.max_query_chars:
+            raise AnswerError(f"question must be 1-{self.max_query_chars} characters of text")
+        text = self.complete([{"role": "system", "content": system}, {"role": "user", "content": user.strip()}],
+                             schema, time.perf_counter() + self.timeout_s)
+        if not isinstance(text, str) or not text.strip():
+            raise AnswerError("empty answer")
+        data = _load_json(text)
+        if not isinstance(data, dict):
+            raise AnswerError(f"answer is JSON {type(data).__name__}, expected an object")
+        return data
 
     def image_url(self, image: np.ndarray | None) -> str | None:
         return None
@@ -159,7 +175,7 @@ class LLMReasoner(Reasoner):
             return r
         messages = build_messages(query, vocab, self.image_url(image))  # a bad image is the caller's error
         try:
-            text = self.complete(messages, vocab, t0 + self.timeout_s)
+            text = self.complete(messages, answer_schema(vocab), t0 + self.timeout_s)
             name, why, score = parse_answer(text, vocab, self.fallback.text, self.min_name_similarity)
         except Exception as exc:  # noqa: BLE001 - any failure of the model means: fall back
             reason = self.describe(exc)
@@ -205,7 +221,7 @@ class OpenAIChatReasoner(LLMReasoner):
     def image_url(self, image):
         return image_data_url(image) if image is not None and self.accepts_images else None
 
-    def complete(self, messages, vocabulary, deadline):
+    def complete(self, messages, schema, deadline):
         body = {"model": self.model or "default", "messages": messages, "temperature": 0.0,
                 "max_tokens": self.max_tokens}
         if self.json_mode:
@@ -254,12 +270,12 @@ class LlamaCppReasoner(LLMReasoner):
     def image_url(self, image):
         return image_data_url(image) if image is not None and self.accepts_images else None
 
-    def complete(self, messages, vocabulary, deadline):
+    def complete(self, messages, schema, deadline):
         # Streamed, so generation stops at the deadline (forcing EOS from a logits processor
         # clashes with the grammar and aborts the process; exceptions raised there are swallowed).
         stream = self.llm.create_chat_completion(
             messages=messages, temperature=0.0, max_tokens=self.max_tokens, stream=True,
-            response_format={"type": "json_object", "schema": answer_schema(vocabulary)})
+            response_format={"type": "json_object", "schema": schema})
         parts = []
         for chunk in stream:
             if time.perf_counter() > deadline:
