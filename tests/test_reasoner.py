@@ -295,6 +295,23 @@ def test_openai_timeout_falls_back(llama_server, text):
     assert r.backend == "text" and "timeout" in r.fallback_reason and r.target == "banana", r
 
 
+def test_openai_parses_relational_queries_with_the_schema_or_says_why(recording_proxy, text):
+    """reason.llm_parse over the wire to the real server: the parse prompt and JSON format go out; the
+    answer becomes the rule parser's fields, or the rule parser reads the query and the note says why."""
+    from rg_core.grounding.phrases import LLM_PARSE_PROMPT, parse, parse_with
+
+    url, bodies = recording_proxy
+    llm = OpenAIChatReasoner(base_url=url, model="smollm2", timeout_s=120, fallback=text)
+    for query in ("the red cup left of the bowl", "how many apples are there"):
+        rq, note = parse_with(llm, query)
+        assert bodies[-1]["messages"][0]["content"] == LLM_PARSE_PROMPT and bodies[-1]["messages"][1]["content"] == query
+        assert bodies[-1]["response_format"] == {"type": "json_object"}
+        if note != "parsed by the openai model":
+            assert note.startswith("openai parse unusable (") and note.endswith("parsed by rules"), note
+            assert rq == parse(query)
+        print(query, "->", rq, note)
+
+
 def test_openai_connection_refused_falls_back(text):
     r = OpenAIChatReasoner(base_url=f"http://127.0.0.1:{_free_port()}/v1", timeout_s=5,
                            fallback=text).reason(BANANA, NAMES)
