@@ -52,6 +52,20 @@ def test_backproject_project_round_trip():
     np.testing.assert_allclose(z, depth.ravel(), atol=1e-9)
 
 
+def test_in_image_keeps_every_pixel_of_the_image_and_nothing_else():
+    K = cv.intrinsics_matrix(200.0, 210.0, 79.5, 59.5)
+    pts = cv.backproject(np.full((120, 160), 2.0), K, np.eye(4)).reshape(-1, 3)
+    uv, z = cv.project(pts, K, np.eye(4))
+    assert cv.in_image(uv, z, 160, 120).all()
+    u, v = np.round(uv[cv.in_image(uv, z, 160, 120)]).astype(int).T
+    assert u.min() == 0 and u.max() == 159 and v.min() == 0 and v.max() == 119
+    edge = np.array([[-0.5, 0.0], [-0.51, 0.0], [159.49, 119.49], [159.5, 0.0], [0.0, 119.5], [np.nan, 0.0],
+                     [np.inf, 0.0], [10.0, 10.0], [10.0, 10.0]])
+    z = np.array([1.0] * 8 + [0.04])
+    assert cv.in_image(edge, z, 160, 120, near=0.05).tolist() == [True, False, True, False, False, False, False,
+                                                                   True, False]
+
+
 @pytest.mark.parametrize("T, msg", [
     (np.full((4, 4), np.nan), "NaN"),
     (np.diag([1.0, 1.0, -1.0, 1.0]), "reflection"),

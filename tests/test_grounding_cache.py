@@ -90,3 +90,12 @@ def test_map_and_field_changes_invalidate(own_map, synth_scene):
     # Nothing changed: no invalidation.
     cached.ground(names[0], mode="explicit")
     assert cached.cache.invalidations == inv + 3
+    # A frame the map already explains changes nothing a query reads: the caches stay; a keyframe does not.
+    explained = 0
+    for f in synth_scene.train:
+        before = cached.cache.invalidations
+        r = m.add_frame(f.load_rgb(), f.load_depth(), f.intrinsics.K, f.cam_to_world, f.stamp + 1000.0)
+        same(cached.ground(names[0], mode="explicit"), plain.ground(names[0], mode="explicit"))
+        assert cached.cache.invalidations == before + int(r.keyframe), r.reason
+        explained += not r.keyframe
+    assert explained > 0

@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from rg_core.config import MapConfig
 from rg_core.eval.mapping import evaluate_views
-from rg_core.geometry.conventions import project
+from rg_core.geometry.conventions import in_image, project
 from rg_core.geometry.rotations import pose_distances
 from rg_core.map.frames import FrameError
 from rg_core.map.mapper import Keyframe, Mapper
@@ -140,7 +140,7 @@ def test_memory_bound_evicts_for_a_new_area_and_spares_protected_boxes(synth_sce
     mapper.protect(lo, hi, margin=0.0)
     rgb, _, K, c2w, _ = area_a[1]
     uv, z = project(pts.astype(np.float64), K, c2w)
-    seen = (z > mapper.cfg.near) & (uv[:, 0] >= 0) & (uv[:, 0] < rgb.shape[1]) & (uv[:, 1] >= 0) & (uv[:, 1] < rgb.shape[0])
+    seen = in_image(uv, z, rgb.shape[1], rgb.shape[0], mapper.cfg.near)
     spared = seen | ((pts >= lo) & (pts <= hi)).all(1)
     n = mapper.evict(len(pts), K, c2w, rgb.shape[1], rgb.shape[0])
     left = {tuple(p) for p in mapper.gaussians.means.detach().numpy()}

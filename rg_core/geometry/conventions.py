@@ -152,3 +152,12 @@ def project(points_world: np.ndarray, K: np.ndarray, c2w: np.ndarray) -> tuple[n
     with np.errstate(divide="ignore", invalid="ignore"):
         uv = np.stack([K[0, 0] * pc[:, 0] / z + K[0, 2], K[1, 1] * pc[:, 1] / z + K[1, 2]], axis=-1)
     return uv, z
+
+
+def in_image(uv: np.ndarray, z: np.ndarray, width: int, height: int, near: float = 0.0) -> np.ndarray:
+    """Which projections (`project`'s uv [N, 2], z [N]) land on a width x height image in front of
+    the `near` plane: bool [N]. Pixel i covers [i - 0.5, i + 0.5) (OpenCV centres), so
+    np.round(uv) of the kept ones indexes the image; NaN/inf projections are out."""
+    with np.errstate(invalid="ignore"):
+        return ((z > near) & (uv[:, 0] >= -0.5) & (uv[:, 0] < width - 0.5)
+                & (uv[:, 1] >= -0.5) & (uv[:, 1] < height - 0.5))

@@ -2,11 +2,12 @@
 feature field changes.
 
 The key is the identity and in-place version counter of the tensors the results are made from
-(Gaussian parameters, field latents) plus the counters that say the rest changed (Gaussians, frames
-and keyframes, supervision masks and PCA basis, field training steps). The mapper's optimiser
+(Gaussian parameters, field latents) plus the counters that say the rest changed (Gaussians,
+keyframes, supervision masks and PCA basis, field training steps). The mapper's optimiser
 replaces its tensors on every step and pruning or adding Gaussians makes new ones, so idle
-refinement, which changes neither the number of Gaussians nor the frames seen, still invalidates;
-in-place edits bump torch's `_version`. Identity is held by weak references: a freed tensor whose
+refinement, which changes neither the number of Gaussians nor the keyframes, still invalidates;
+in-place edits bump torch's `_version`. A frame the map already explains changes none of these
+and keeps the caches (a robot streaming frames of a mapped room asks warm). Identity is held by weak references: a freed tensor whose
 address is reused never passes for the old one.
 """
 from __future__ import annotations

@@ -169,7 +169,7 @@ class Grounder:
         g = m.gaussians
         tensors = (g.means, g.log_scales, g.quats, g.opacity_logits)
         sset = m.supervision
-        counters = (len(g), m.frames_seen, len(m.keyframes), m.keyframes[-1].index if m.keyframes else -1, id(sset))
+        counters = (len(g), len(m.keyframes), m.keyframes[-1].index if m.keyframes else -1, id(sset))
         if sset is not None:
             counters += (len(sset.by_keyframe), sum(len(s.embeddings) for s in sset.by_keyframe.values()),
                          getattr(sset.pca, "version", None), id(sset.pca.pca))

@@ -85,7 +85,7 @@ def observed_pixels(mapper, points: np.ndarray, views: int = 4, tol: float = 0.0
     keyframe, kept where the keyframe's depth agrees within tol + 2 % (not occluded), from the
     `views` keyframes that see most of them. An object's colour is what the camera saw of it; the
     Gaussians' own colours are a fit that blends neighbours and the background."""
-    from ..geometry.conventions import project
+    from ..geometry.conventions import in_image, project
 
     if not len(points):
         return np.zeros((0, 3), np.uint8)
@@ -93,8 +93,7 @@ def observed_pixels(mapper, points: np.ndarray, views: int = 4, tol: float = 0.0
     for kf in mapper.keyframes:
         w, h = kf.size
         uv, z = project(np.asarray(points, np.float64), np.asarray(kf.K, np.float64), kf.cam_to_world)
-        with np.errstate(invalid="ignore"):
-            ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+        ok = in_image(uv, z, w, h)
         u, v = np.round(uv[ok]).astype(int).T
         d = kf.depth.numpy()[v, u]
         vis = (d > 0) & (np.abs(d - z[ok]) <= tol + 0.02 * z[ok])

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ..config import MapConfig
-from ..geometry.conventions import scale_intrinsics
+from ..geometry.conventions import in_image, project, scale_intrinsics
 from ..geometry.rotations import pose_distances
 from ..render import EPS2D, Camera, RenderOutput, rasterize
 from .frames import PreparedFrame, downscale_depth, prepare_frame
@@ -351,16 +351,13 @@ class Mapper:
         see, the least useful first: the lowest opacity x nearness to the camera (median distance /
         (median + distance)) x recency (0.5 + 0.5 rank / N: the map keeps its Gaussians in the order
         they were added). Gaussians in view and in protected boxes stay. Returns how many went."""
-        from ..geometry.conventions import project
-
         g = self.gaussians
         if n <= 0 or not len(g):
             return 0
         means = g.means.detach()
         pts = means.double().numpy()
         uv, z = project(pts, np.asarray(K, np.float64), np.asarray(cam_to_world, np.float64))
-        with np.errstate(invalid="ignore"):
-            seen = (z > self.cfg.near) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+        seen = in_image(uv, z, width, height, self.cfg.near)
         d = torch.from_numpy(np.linalg.norm(pts - np.asarray(cam_to_world, np.float64)[:3, 3], axis=1)).float()
         med = d.median().clamp(min=1e-3)
         value = g.opacities.detach() * med / (med + d) * (0.5 + 0.5 * torch.arange(len(g)) / len(g))
