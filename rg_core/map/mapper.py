@@ -139,14 +139,15 @@ class Mapper:
         t2 = time.perf_counter()
         self.seconds["check"] += t2 - t1
         res = FrameResult(False, "", unexplained=frac, photometric_error=photo)
+        near_static = False
         if not self.keyframes:
             res.reason = "first frame"
         elif frac > self.cfg.kf_new_fraction:
             res.reason = f"{100 * frac:.1f}% of the view is not in the map"
         elif photo > self.cfg.kf_photo_error:
             res.reason = f"map renders this view with colour error {photo:.3f}"
-        elif (len(self.keyframes) < self.cfg.kf_min_count
-              and fr.stamp - self.keyframes[-1].stamp >= self.cfg.kf_min_interval):
+        elif near_static := (len(self.keyframes) < self.cfg.kf_min_count
+                             and fr.stamp - self.keyframes[-1].stamp >= self.cfg.kf_min_interval):
             res.reason = (f"{len(self.keyframes)} keyframe(s) < kf_min_count {self.cfg.kf_min_count}: a keyframe every "
                           f"{self.cfg.kf_min_interval:g} s until then (a near-static camera)")
         else:
@@ -155,7 +156,7 @@ class Mapper:
             return res
         res.keyframe = True
         kf = Keyframe(index, fr.stamp, fr.cam_to_world, fr.K, rgb_t, depth_t)
-        if self.keyframes and self.cfg.kf_revisit > 0 and not res.reason.startswith(f"{len(self.keyframes)} keyframe"):
+        if self.keyframes and self.cfg.kf_revisit > 0 and not near_static:
             d = pose_distances(np.stack([k.cam_to_world for k in self.keyframes]), fr.cam_to_world)   # [N]
             j = int(np.argmin(d))
             if d[j] <= self.cfg.kf_revisit:
