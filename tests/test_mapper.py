@@ -76,8 +76,8 @@ def test_second_pass_barely_grows_the_map(synth_scene):
 
 
 def test_revisited_view_replaces_its_keyframe(synth_scene):
-    """A looped route (every frame a keyframe here) keeps one keyframe per view: the second visit of
-    a view replaces the first with its supervision; kf_revisit 0 keeps both."""
+    """A looped route (every frame a keyframe and counted as changed here) keeps one keyframe per
+    view: the second visit of a view replaces the first with its supervision; kf_revisit 0 keeps both."""
     views = synth_scene.train[:4]
     loop = [frame_args(f) for f in views] + [(rgb, d, K, c2w, s + 100.0) for rgb, d, K, c2w, s in map(frame_args, views)]
     mapper = Mapper(MapConfig(**SMALL, kf_new_fraction=-1.0))
@@ -93,6 +93,40 @@ def test_revisited_view_replaces_its_keyframe(synth_scene):
     assert mapper.totals["keyframes_replaced"] == 4 and [k.stamp for k in mapper.keyframes] == [a[4] for a in loop[4:]]
     off = Mapper(MapConfig(**SMALL, kf_new_fraction=-1.0, kf_revisit=0.0))
     assert sum(off.add_frame(*args).replaced is not None for args in loop) == 0 and len(off.keyframes) == 8
+
+
+def test_unchanged_revisit_seeds_the_map_and_keeps_its_keyframe(synth_scene):
+    """A view the map no longer explains (its Gaussians gone), seen again unchanged from its
+    keyframe's pose: seeds restore it, the keyframe and its supervision stay (no new supervision,
+    no retraining); a changed view at that pose replaces the keyframe."""
+    frames = [frame_args(f) for f in synth_scene.train[:3]]
+    mapper = Mapper(MapConfig(**SMALL))
+    for args in frames:
+        mapper.add_frame(*args)
+    mapper.supervision = sset = SupervisionSet()
+    for k in mapper.keyframes:
+        sset.add(k.index, KeyframeSupervision(np.zeros((1, 2, 2), bool), np.ones(1, np.float32), np.ones(1, np.int8),
+                                              np.ones(1, np.float32), torch.randn(1, 8)))
+    kept = [k.index for k in mapper.keyframes]
+    rgb, depth, K, c2w, stamp = frames[0]
+    uv, z = project(mapper.gaussians.means.detach().double().numpy(), K, c2w)
+    mapper.gaussians.keep(torch.from_numpy(~in_image(uv, z, rgb.shape[1], rgb.shape[0])))   # view 0 forgotten
+    mapper.optim.keep(torch.from_numpy(~in_image(uv, z, rgb.shape[1], rgb.shape[0])))
+    n = len(mapper.gaussians)
+    r = mapper.add_frame(rgb, depth, K, c2w, stamp + 100.0)
+    assert not r.keyframe and r.revisit == kept[0] and r.replaced is None, r.reason
+    assert "a revisit of keyframe" in r.reason and r.added > 0 and len(mapper.gaussians) > n
+    assert [k.index for k in mapper.keyframes] == kept and set(sset.by_keyframe) == set(kept)
+    assert mapper.totals["revisits"] == 1
+    assert float(mapper.render(K, c2w, rgb.shape[1], rgb.shape[0]).alpha.mean()) > 0.5
+    # the same pose, the scene changed (a box appeared in front of the camera): the keyframe is replaced
+    changed_rgb, changed_depth = rgb.copy(), depth.copy()
+    h, w = depth.shape
+    changed_rgb[h // 4: 3 * h // 4, w // 4: 3 * w // 4] = (250, 20, 200)
+    changed_depth[h // 4: 3 * h // 4, w // 4: 3 * w // 4] = 0.3
+    r = mapper.add_frame(changed_rgb, changed_depth, K, c2w, stamp + 200.0)
+    assert r.keyframe and r.replaced == kept[0] and "% changed" in r.reason, r.reason
+    assert kept[0] not in {k.index for k in mapper.keyframes} and kept[0] not in sset.by_keyframe
 
 
 def test_pose_distances_orders_views_by_overlap():

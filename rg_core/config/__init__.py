@@ -148,10 +148,11 @@ class MapConfig:
     kf_min_interval: float = 1.0
     """Seconds (frame stamps) between such keyframes."""
     kf_revisit: Annotated[float, Interval(ge=0.0)] = 0.02
-    """A keyframe whose pose is within this distance of an existing keyframe's (metres + 0.3 m per
-    radian) replaces that keyframe instead of adding one: a camera that returns to a view, or a
-    static camera watching a change, keeps one keyframe there with the freshest images. The
-    near-static rule above is exempt; 0 = off."""
+    """A would-be keyframe within this distance of an existing keyframe's pose (metres + 0.3 m per
+    radian) adds none: if its images match that keyframe's (at most kf_new_fraction of the pixels
+    changed) the map only seeds what it lacks there; otherwise it replaces that keyframe (a static
+    camera watching a change keeps one keyframe, the freshest). A looped route keeps one keyframe
+    per view. The near-static rule above is exempt; 0 = off."""
     seed_colour_error: float = 0.3
     """After a keyframe's optimisation, seed at half the stride where the map still renders it with a
     per-pixel L1 colour error above this (detail the map lacks: densification). 0 turns it off."""

@@ -69,7 +69,21 @@ class FrameResult:
     unexplained: float = 0.0    # fraction of valid depth pixels the map did not explain
     photometric_error: float = 0.0
     replaced: int | None = None  # index of the keyframe this one replaced (same view: MapConfig.kf_revisit)
+    revisit: int | None = None   # the unchanged keyframe this frame revisited (seeded, not a keyframe)
     seconds: dict = field(default_factory=dict)
+
+
+def _changed_fraction(kf: "Keyframe", rgb: torch.Tensor, depth: torch.Tensor, colour_tol: float = 0.1,
+                      depth_tol: float = 0.03) -> float:
+    """How much of a view differs from keyframe `kf`'s images (same working size; else 1): the share
+    of pixels whose colour moved by more than colour_tol in a channel, whose depth moved by more
+    than max(depth_tol, depth_tol x depth) or that are valid in one and not the other."""
+    if tuple(kf.rgb.shape) != tuple(rgb.shape):
+        return 1.0
+    a, b = kf.depth > 0, depth > 0
+    dz = (kf.depth - depth).abs() > torch.clamp(depth_tol * depth, min=depth_tol)
+    changed = ((kf.rgb - rgb).abs().amax(-1) > colour_tol) | (a != b) | (a & b & dz)
+    return float(changed.float().mean())
 
 
 class Mapper:
@@ -84,7 +98,7 @@ class Mapper:
         self.frames_seen = 0
         self.last_stamp: float | None = None
         self.totals = {"added": 0, "dropped": 0, "pruned": 0, "evicted": 0, "out_of_order": 0, "keyframe_iters": 0,
-                       "keyframes_dropped": 0, "keyframes_replaced": 0}
+                       "keyframes_dropped": 0, "keyframes_replaced": 0, "revisits": 0}
         self.protected: list[tuple[np.ndarray, np.ndarray]] = []   # boxes (lo, hi) eviction never touches
         self.seconds = {"prepare": 0.0, "check": 0.0, "seed": 0.0, "optimise": 0.0, "prune": 0.0, "refine": 0.0}
         self._rng = torch.Generator().manual_seed(self.cfg.seed)
@@ -160,10 +174,18 @@ class Mapper:
             d = pose_distances(np.stack([k.cam_to_world for k in self.keyframes]), fr.cam_to_world)   # [N]
             j = int(np.argmin(d))
             if d[j] <= self.cfg.kf_revisit:
-                old = self._remove_keyframe(j)
+                old = self.keyframes[j]
+                changed = _changed_fraction(old, rgb_t, depth_t)
+                if changed <= self.cfg.kf_new_fraction:   # the same view, unchanged: only the map lacks it
+                    res.keyframe, res.revisit = False, old.index
+                    res.reason += (f"; a revisit of keyframe {old.index} ({d[j]:.3f} m-equivalent, "
+                                   f"{100 * changed:.1f}% changed): its unexplained pixels seeded, no new keyframe")
+                    return self._seed_revisit(fr, unexplained, res, t0, t1, t2)
+                self._remove_keyframe(j)
                 res.replaced = old.index
                 self.totals["keyframes_replaced"] += 1
-                res.reason += f"; replaces keyframe {old.index} at the same view ({d[j]:.3f} m-equivalent)"
+                res.reason += (f"; replaces keyframe {old.index} at the same view ({d[j]:.3f} m-equivalent, "
+                               f"{100 * changed:.1f}% changed)")
         while self.cfg.max_keyframes and len(self.keyframes) >= self.cfg.max_keyframes:
             if self.drop_redundant_keyframe() is None:     # room first: the count never passes the budget
                 break
@@ -186,6 +208,24 @@ class Mapper:
         self.totals["added"] += res.added
         self.totals["dropped"] += res.dropped
         self.totals["pruned"] += res.pruned
+        return res
+
+    def _seed_revisit(self, fr: PreparedFrame, unexplained: torch.Tensor, res: FrameResult, t0: float, t1: float,
+                      t2: float) -> FrameResult:
+        """A revisited, unchanged view: seed what the map lacks there and optimise as after a
+        keyframe, keeping the keyframe (and its supervision) the map already has."""
+        res.added, res.dropped = self._seed(fr, unexplained)
+        t3 = time.perf_counter()
+        self.totals["keyframe_iters"] += self._optimise(self.cfg.iters_per_keyframe, converge=True)
+        t4 = time.perf_counter()
+        res.pruned = self._prune()
+        t5 = time.perf_counter()
+        res.seconds = {"prepare": t1 - t0, "check": t2 - t1, "seed": t3 - t2, "optimise": t4 - t3, "prune": t5 - t4}
+        for k in ("seed", "optimise", "prune"):
+            self.seconds[k] += res.seconds[k]
+        for k in ("added", "dropped", "pruned"):
+            self.totals[k] += getattr(res, k)
+        self.totals["revisits"] += 1
         return res
 
     def _unexplained(self, out: RenderOutput, depth: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
