@@ -65,6 +65,11 @@ class SynthConfig:
     """Distance between neighbouring table centres (m); 4 tables 3 m apart span 4.5 x 4 m."""
     room_spread: Annotated[float, Interval(gt=0.0, le=0.45)] = 0.32
     """Half-width (m) of the square on each room table where its objects are dropped."""
+    room_radius: tuple[float, float] = (0.9, 1.3)
+    """Min/max horizontal distance (m) of the room walk from each table's centre (a robot passing
+    by; (0.45, 0.7) is one stepping up to the table, objects as large in the image as on the table top)."""
+    room_height: tuple[float, float] = (0.9, 1.3)
+    """Min/max camera height above the floor (m) on the room walk (the table top is at 0.63 m)."""
     point_cloud_voxel: float = 0.005
     """Voxel size (m) of points3d.ply."""
     workers: int = 2

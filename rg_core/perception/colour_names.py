@@ -57,6 +57,20 @@ def lch(pixels: np.ndarray) -> np.ndarray:
                      np.degrees(np.arctan2(lab[:, 2], lab[:, 1])) % 360.0], 1)
 
 
+def pixel_names(pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """RGB [N, 3] (0..255) -> (basic colour term of each pixel [N] str, its L* [N]): the hue
+    sector in CIELAB LCh; brown for dark or dull warm hues, pink for light red and purple; below
+    C* 12 white / grey / black by L*."""
+    L, C, h = lch(np.clip(pixels, 0, 255)).T
+    sector = np.minimum(np.searchsorted([u for u, _ in _HUE_SECTORS], h, side="right"), len(_HUE_SECTORS) - 1)
+    names = np.array([t for _, t in _HUE_SECTORS])[sector]
+    warm = np.isin(names, ("red", "orange", "yellow"))
+    names = np.where(warm & ((L < _BROWN_L) | ((L < _BROWN_L_DULL) & (C < _BROWN_C))), "brown", names)
+    names = np.where(np.isin(names, ("red", "purple")) & (L > _PINK_L), "pink", names)
+    names = np.where(C < _MIN_CHROMA, np.where(L >= _WHITE_L, "white", np.where(L < _BLACK_L, "black", "grey")), names)
+    return names, L
+
+
 def colour_term(pixels: np.ndarray) -> str:
     """RGB [N, 3] (0..255) of one object -> its basic colour term, "light"/"dark" before a chromatic one.
 
@@ -69,13 +83,7 @@ def colour_term(pixels: np.ndarray) -> str:
         raise ValueError(f"colour_term: expected RGB pixels [N>0, 3], got {getattr(pixels, 'shape', type(pixels))}")
     if not np.isfinite(pixels).all():
         raise ValueError("colour_term: pixels hold NaN or inf; expected finite 0..255 RGB")
-    L, C, h = lch(np.clip(pixels, 0, 255)).T
-    sector = np.minimum(np.searchsorted([u for u, _ in _HUE_SECTORS], h, side="right"), len(_HUE_SECTORS) - 1)
-    names = np.array([t for _, t in _HUE_SECTORS])[sector]
-    warm = np.isin(names, ("red", "orange", "yellow"))
-    names = np.where(warm & ((L < _BROWN_L) | ((L < _BROWN_L_DULL) & (C < _BROWN_C))), "brown", names)
-    names = np.where(np.isin(names, ("red", "purple")) & (L > _PINK_L), "pink", names)
-    names = np.where(C < _MIN_CHROMA, np.where(L >= _WHITE_L, "white", np.where(L < _BLACK_L, "black", "grey")), names)
+    names, L = pixel_names(pixels)
     terms, counts = np.unique(names, return_counts=True)
     term = str(terms[np.argmax(counts)])
     if term not in ("red", "orange", "yellow", "green", "blue", "purple"):

@@ -107,8 +107,8 @@ def table_centres(cfg: SynthConfig) -> tuple[tuple[float, float], ...]:
 def camera_walk(cfg: SynthConfig, tables: tuple[tuple[float, float], ...], top: float,
                 rng: np.random.Generator) -> list[np.ndarray]:
     """A room walk: the tables visited in a loop, the views shared among them, each table seen on a
-    270-degree arc 0.9-1.3 m from its centre at 0.9-1.3 m above the floor (a robot's head height),
-    looking at the table top."""
+    270-degree arc `room_radius` from its centre at `room_height` above the floor (default 0.9-1.3 m
+    and 0.9-1.3 m: a robot's head height), looking at the table top."""
     poses = []
     per = np.array_split(np.arange(cfg.views), len(tables))
     centre = np.mean(np.asarray(tables), 0)
@@ -117,9 +117,9 @@ def camera_walk(cfg: SynthConfig, tables: tuple[tuple[float, float], ...], top: 
         start = np.arctan2(*(np.asarray(tables[t]) - centre)[::-1]) - 0.75 * np.pi   # arc faces the room's middle
         for j, _ in enumerate(idx):
             az = start + 1.5 * np.pi * j / max(len(idx) - 1, 1) + rng.uniform(-0.02, 0.02)
-            r = rng.uniform(0.9, 1.3)
+            r = rng.uniform(*cfg.room_radius)
             eye = c + np.array([r * np.cos(az), r * np.sin(az), 0.0])
-            eye[2] = rng.uniform(0.9, 1.3)
+            eye[2] = rng.uniform(*cfg.room_height)
             poses.append(look_at(eye, c + rng.uniform(-0.08, 0.08, size=3)))
     return poses
 
