@@ -203,3 +203,16 @@ def test_room_layout_spreads_objects_over_tables_and_walks_between_them(tmp_path
                             == uids[o.object_id]).any()
         p.disconnect(cid)
     assert skipped > 0
+
+
+def test_room_walk_distance_and_height_follow_the_config():
+    """room_radius / room_height place the walk's cameras (no rendering: the poses alone)."""
+    from rg_core.synth.generator import camera_walk, table_centres
+
+    for radius, height in (((0.9, 1.3), (0.9, 1.3)), ((0.45, 0.7), (1.0, 1.1))):
+        cfg = small_synth_config(views=40, layout="room", tables=4, room_radius=radius, room_height=height)
+        tables = np.array(table_centres(cfg))
+        eyes = np.array([c2w[:3, 3] for c2w in camera_walk(cfg, tuple(map(tuple, tables)), 0.63, np.random.default_rng(0))])
+        horizontal = np.linalg.norm(eyes[:, None, :2] - tables[None], axis=2).min(1)   # to the nearest table's centre
+        assert (horizontal >= radius[0] - 1e-9).all() and (horizontal <= radius[1] + 1e-9).all(), horizontal
+        assert (eyes[:, 2] >= height[0]).all() and (eyes[:, 2] <= height[1]).all()
