@@ -182,7 +182,7 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
             st = dict(status)
             since = {k: (st.get(k) or 0) - (warm.get(k) or 0) for k in ("received", "mapped", "dropped", "rejected")}
             samples.append({"t": time.monotonic() - t0, "rss_mb": _rss_mb(node.pid), **since,   # counts: after warm-up
-                            **{k: st.get(k) for k in ("queue", "gaussians", "keyframes", "evicted", "keyframes_dropped", "revisits")},
+                            **{k: st.get(k) for k in ("queue", "gaussians", "keyframes", "evicted", "keyframes_dropped", "keyframes_replaced", "revisits")},
                             "input_errors": sum((st.get("input_errors") or {}).values()),
                             "sync_dropped": st.get("sync_dropped"), "tf_dropped": st.get("tf_dropped")})
             if int(st.get("received") or 0) != bar.n:
