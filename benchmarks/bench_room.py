@@ -63,13 +63,12 @@ def to_rows(report: dict) -> tuple[list[dict], str]:
     gap = {r["scene"]: table["explicit_miou_visible"] - r["explicit_miou_visible"] for r in report["rows"]
            if r["scene"].startswith("synthetic room")}
     lo, hi = report.get("close_radius", (0.45, 0.7))
-    return rows, (f"rg synth seed {report['seed']}: room of {report['objects']} objects on {report['tables']} tables 3 m "
-                  f"apart, {report['views']} views 320x240 (synth {report['synth_room_s']:.0f} s), walked 0.9-1.3 m from each "
-                  f"table's centre, and the same room walked {lo:g}-{hi:g} m from it (close: objects as large in the image "
-                  f"as on the table top, 0.38-0.62 m); table top 7 objects {report['table_views']} views; oracle "
-                  f"supervision. Explicit visible mIoU below the table top's: "
-                  + ", ".join(f"{k} {v:.1f} points" for k, v in gap.items())
-                  + " (target <= 5). redkitchen_100: map only (no object ground truth).")
+    return rows, (f"rg synth seed {report['seed']}: {report['objects']} objects on {report['tables']} tables 3 m apart, "
+                  f"{report['views']} views 320x240, walked 0.9-1.3 m from each table (room) and {lo:g}-{hi:g} m "
+                  f"(close; the table top's ring: 0.38-0.62 m); table top 7 objects, {report['table_views']} views; oracle. "
+                  "Explicit mIoU below the table top's: " + ", ".join(f"{k.replace('synthetic ', '')} {v:.1f}"
+                                                                     for k, v in gap.items())
+                  + " points (target <= 5). redkitchen_100: map only.")
 
 
 def plot(report: dict, png: Path) -> Path:
