@@ -207,13 +207,18 @@ def test_query_before_any_frame_and_bad_queries(h):
     assert h.node_a.poll() is None
 
 
-def test_replayed_frames_build_the_map(h):
+def replay_scene(h) -> dict:
+    """`rg-replay` of the scene into node A; the status once it holds keyframes and an empty queue."""
     rep = subprocess.run([sys.executable, "-m", "rg_ros.tools", "replay", str(h.scene), "--rate", "4"],
                          env=dict(os.environ), capture_output=True, text=True, timeout=60)
     assert rep.returncode == 0, rep.stdout + rep.stderr
     assert f"published {len(h.frames)} frames" in rep.stdout + rep.stderr
-    st = wait_for(lambda: h.st() if h.st().get("keyframes", 0) > 0 and h.st()["queue"] == 0 else None, 60,
-                  "keyframes in the status")
+    return wait_for(lambda: h.st() if h.st().get("keyframes", 0) > 0 and h.st()["queue"] == 0 else None, 60,
+                    "keyframes in the status")
+
+
+def test_replayed_frames_build_the_map(h):
+    st = replay_scene(h)
     assert st["frames"] >= 3 and st["gaussians"] > 0 and st["queue_size"] == 2
     assert st["rejected"] == 0 and set(st["input_errors"]) <= {"queue_drop"}   # mapping may lag the replay
 
@@ -249,15 +254,27 @@ def test_bad_input_keeps_node_and_map(h, case):
 
 
 def test_flood_is_dropped_and_bounded(h):
+    """40 frames at once, each of an area the map has not seen (the scene shifted 5 m further each
+    time, so every mapped one is a keyframe: tens of ms against well under 1 ms to publish one): the
+    queue of 2 drops and says so. The map is then reset and rebuilt for the tests after this one."""
+    import copy
+
     before = h.fresh_status()
+    burst = []
     for i in range(40):
-        h.publish(h.frame(i))
-        time.sleep(0.02)
+        f = copy.copy(h.frames[i % len(h.frames)])
+        f.cam_to_world = f.cam_to_world.copy()
+        f.cam_to_world[0, 3] += 5.0 * (i + 1)
+        burst.append(frame_messages(f, h.node.get_clock().now().to_msg(), OPTICAL, "map"))
+    for msgs in burst:
+        h.publish(msgs)
     st = wait_for(lambda: h.st() if h.st().get("dropped", 0) > before["dropped"] else None, 20, "dropped frames")
     assert st["queue"] <= st["queue_size"] == 2
     assert "mapping is slower than the input" in h.log()
     wait_for(lambda: h.st()["queue"] == 0, 60, "the queue to drain")
     assert h.node_a.poll() is None
+    assert h.call(h.reset, Trigger.Request()).success
+    assert replay_scene(h)["gaussians"] > 0
 
 
 
