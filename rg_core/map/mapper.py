@@ -177,23 +177,25 @@ class Mapper:
                 old = self.keyframes[j]
                 changed = _changed_fraction(old, rgb_t, depth_t)
                 if changed <= self.cfg.kf_new_fraction:   # the same view, unchanged: only the map lacks it
-                    res.keyframe, res.revisit = False, old.index
+                    res.keyframe, res.revisit = False, old.index   # seeded and optimised below, not added
+                    self.totals["revisits"] += 1
                     res.reason += (f"; a revisit of keyframe {old.index} ({d[j]:.3f} m-equivalent, "
                                    f"{100 * changed:.1f}% changed): its unexplained pixels seeded, no new keyframe")
-                    return self._seed_revisit(fr, unexplained, res, t0, t1, t2)
-                self._remove_keyframe(j)
-                res.replaced = old.index
-                self.totals["keyframes_replaced"] += 1
-                res.reason += (f"; replaces keyframe {old.index} at the same view ({d[j]:.3f} m-equivalent, "
-                               f"{100 * changed:.1f}% changed)")
-        while self.cfg.max_keyframes and len(self.keyframes) >= self.cfg.max_keyframes:
-            if self.drop_redundant_keyframe() is None:     # room first: the count never passes the budget
-                break
-        self.keyframes.append(kf)
+                else:
+                    self._remove_keyframe(j)
+                    res.replaced = old.index
+                    self.totals["keyframes_replaced"] += 1
+                    res.reason += (f"; replaces keyframe {old.index} at the same view ({d[j]:.3f} m-equivalent, "
+                                   f"{100 * changed:.1f}% changed)")
+        if res.keyframe:
+            while self.cfg.max_keyframes and len(self.keyframes) >= self.cfg.max_keyframes:
+                if self.drop_redundant_keyframe() is None:     # room first: the count never passes the budget
+                    break
+            self.keyframes.append(kf)
         res.added, res.dropped = self._seed(fr, unexplained)
         t3 = time.perf_counter()
         self.totals["keyframe_iters"] += self._optimise(self.cfg.iters_per_keyframe, converge=True)
-        if self.cfg.seed_colour_error > 0:
+        if res.keyframe and self.cfg.seed_colour_error > 0:
             a, d = self._densify(fr, kf)
             res.added, res.dropped = res.added + a, res.dropped + d
         t4 = time.perf_counter()
@@ -208,24 +210,6 @@ class Mapper:
         self.totals["added"] += res.added
         self.totals["dropped"] += res.dropped
         self.totals["pruned"] += res.pruned
-        return res
-
-    def _seed_revisit(self, fr: PreparedFrame, unexplained: torch.Tensor, res: FrameResult, t0: float, t1: float,
-                      t2: float) -> FrameResult:
-        """A revisited, unchanged view: seed what the map lacks there and optimise as after a
-        keyframe, keeping the keyframe (and its supervision) the map already has."""
-        res.added, res.dropped = self._seed(fr, unexplained)
-        t3 = time.perf_counter()
-        self.totals["keyframe_iters"] += self._optimise(self.cfg.iters_per_keyframe, converge=True)
-        t4 = time.perf_counter()
-        res.pruned = self._prune()
-        t5 = time.perf_counter()
-        res.seconds = {"prepare": t1 - t0, "check": t2 - t1, "seed": t3 - t2, "optimise": t4 - t3, "prune": t5 - t4}
-        for k in ("seed", "optimise", "prune"):
-            self.seconds[k] += res.seconds[k]
-        for k in ("added", "dropped", "pruned"):
-            self.totals[k] += getattr(res, k)
-        self.totals["revisits"] += 1
         return res
 
     def _unexplained(self, out: RenderOutput, depth: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
