@@ -9,22 +9,25 @@ import pytest
 from rg_core.io.sync import ApproximateTimeSync, SyncedSet
 
 
-def test_pairs_within_slop_are_emitted_once():
+def test_equal_stamps_go_at_once_and_a_pair_within_slop_once_both_topics_moved_past_it():
     s = ApproximateTimeSync(["rgb", "depth"], queue_size=5, slop=0.01)
     assert s.add("rgb", 1.000, "r1") is None
-    out = s.add("depth", 1.004, "d1")
+    assert s.add("depth", 1.000, "d1").msgs == ("r1", "d1")     # spread 0: nothing can pair better
+    assert s.add("rgb", 1.030, "r2") is None
+    assert s.add("depth", 1.034, "d2") is None                 # within slop, but an rgb at 1.034 may still come
+    out = s.add("rgb", 1.066, "r3")                              # rgb moved past it: final
     assert isinstance(out, SyncedSet)
-    assert out.msgs == ("r1", "d1") and out.stamps == (1.000, 1.004)
+    assert out.msgs == ("r2", "d2") and out.stamps == (1.030, 1.034)
     assert out.spread == pytest.approx(0.004)
-    assert s.emitted == 1 and s.dropped == {"rgb": 0, "depth": 0}
-    assert s.add("rgb", 1.033, "r2") is None   # its partner has not come yet
+    assert s.emitted == 2 and s.dropped == {"rgb": 0, "depth": 0}
 
 
 def test_pairs_outside_slop_wait():
     s = ApproximateTimeSync(["a", "b"], slop=0.01)
     assert s.add("a", 1.0, "a1") is None
     assert s.add("b", 1.02, "b1") is None
-    out = s.add("a", 1.021, "a2")
+    assert s.add("a", 1.021, "a2") is None   # (a2, b1) is within slop; a b at 1.021 may still come
+    out = s.add("b", 1.05, "b2")
     assert out.msgs == ("a2", "b1")
     assert s.dropped == {"a": 1, "b": 0}   # a1 was passed over
 
@@ -33,7 +36,8 @@ def test_closest_set_is_chosen():
     s = ApproximateTimeSync(["a", "b"], slop=0.05)
     s.add("a", 1.00, "a1")
     s.add("a", 1.03, "a2")
-    out = s.add("b", 1.029, "b1")   # both a1 and a2 are within slop; a2 is closer
+    assert s.add("b", 1.029, "b1") is None   # a1 and a2 are both within slop; a2 is closer; b may still move
+    out = s.add("b", 1.06, "b2")
     assert out.msgs == ("a2", "b1")
     assert s.dropped["a"] == 1
 
@@ -42,18 +46,19 @@ def test_ties_prefer_the_earliest_set():
     s = ApproximateTimeSync(["a", "b"], slop=0.05)
     s.add("a", 1.00, "a1")
     s.add("a", 1.02, "a2")
-    assert s.add("b", 1.01, "b1").msgs == ("a1", "b1")
+    assert s.add("b", 1.01, "b1").msgs == ("a1", "b1")   # a already went past 1.01: final
 
 
 def test_out_of_order_arrival():
     s = ApproximateTimeSync(["a", "b"], queue_size=10, slop=0.005)
     for t in (3.0, 1.0, 2.0):          # a arrives scrambled
         assert s.add("a", t, f"a{t:g}") is None
-    assert s.add("b", 2.001, "b2").msgs == ("a2", "b2")
+    assert s.add("b", 2.0, "b2").msgs == ("a2", "b2")
     assert s.dropped == {"a": 1, "b": 0}   # a1 is older than the emitted set
     assert s.add("b", 1.0, "b1") is None   # too late: a set after it has gone out
     assert s.dropped == {"a": 1, "b": 1}
-    assert s.add("b", 3.002, "b3").msgs == ("a3", "b3")
+    assert s.add("b", 3.002, "b3") is None    # an a at 3.002 may still come
+    assert s.add("a", 4.0, "a4").msgs == ("a3", "b3")
 
 
 def test_full_queue_drops_oldest():
@@ -71,12 +76,14 @@ def test_three_topics():
     assert s.add("rgb", 10.00, "r") is None
     assert s.add("depth", 10.01, "d") is None
     assert s.add("pose", 10.05, "p_far") is None      # spread 0.05 > slop
-    out = s.add("pose", 10.015, "p")
+    assert s.add("pose", 10.015, "p") is None         # an rgb or depth nearer 10.015 may still come
+    assert s.add("rgb", 10.04, "r2") is None
+    out = s.add("depth", 10.045, "d2")                 # every topic went past 10.015: final
     assert out.msgs == ("r", "d", "p") and out.spread == pytest.approx(0.015)
     assert s.dropped == {"rgb": 0, "depth": 0, "pose": 0}
-    # p_far (10.05) is still queued and can match the next frame
-    s.add("rgb", 10.04, "r2")
-    assert s.add("depth", 10.045, "d2").msgs == ("r2", "d2", "p_far")
+    # p_far (10.05) is still queued and matches the next frame once rgb and depth go past it
+    assert s.add("rgb", 10.07, "r3") is None
+    assert s.add("depth", 10.075, "d3").msgs == ("r2", "d2", "p_far")
 
 
 def test_three_topics_stream_with_jitter():
@@ -94,10 +101,45 @@ def test_three_topics_stream_with_jitter():
     events.sort(key=lambda e: e[0] + rng.uniform(0, 0.004))   # arrival order: stamp plus latency noise
     for stamp, topic, frame in events:
         s.add(topic, stamp, (topic, frame))
-    assert s.emitted == len(got) >= 55
+    assert s.emitted == len(got) >= 54    # the last frame waits for a later message on every topic
+    assert len(s.flush()) <= 1 and s.emitted == len(got) >= 55
     for out in got:
         assert out.msgs[0][1] == out.msgs[1][1]   # rgb and depth of the same frame
         assert out.spread <= 0.006
+    assert [o.stamps[0] for o in got] == sorted(o.stamps[0] for o in got)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_burst_arriving_out_of_step_never_mixes_frames(seed):
+    """100 frames published at once (stamps 1.5 ms apart, well inside the 50 ms slop), each topic in
+    order but the topics out of step by up to 5 frames: every set emitted is one frame's, none is
+    lost. Emitting the first set within slop mixed frames in about half of the sets."""
+    rng = random.Random(seed)
+    topics = ["rgb", "depth", "info", "pose"]
+    got = []
+    s = ApproximateTimeSync(topics, queue_size=10, slop=0.05, callback=got.append)
+    arrivals = []
+    for topic in topics:                 # each topic in order (as DDS delivers one publisher), lagging 0-5 frames
+        t = 0.0
+        for k in range(100):
+            t = max(t + 0.01, k + rng.uniform(0, 5))
+            arrivals.append((t, topic, 100 + 0.0015 * k, k))
+    arrivals.sort()
+    for _, topic, stamp, k in arrivals:
+        s.add(topic, stamp, (topic, k))
+    s.flush()
+    assert all(len({m[1] for m in out.msgs}) == 1 for out in got), [[m[1] for m in o.msgs] for o in got]
+    assert len(got) + min(s.dropped.values()) == 100 and len(got) >= 50
+
+
+def test_flush_emits_what_is_left_within_slop():
+    got = []
+    s = ApproximateTimeSync(["a", "b"], slop=0.01, callback=got.append)
+    s.add("a", 1.0, "a1")
+    s.add("b", 1.004, "b1")
+    assert got == []                  # an a at 1.004 may still come
+    assert [o.msgs for o in s.flush()] == [("a1", "b1")] and len(got) == 1
+    assert s.flush() == []
 
 
 def test_callback_and_thread_safety():

@@ -276,6 +276,7 @@ def read_bag(path: str | Path, opts: BagOptions | None = None, test_every: int =
                     sync.add(role, stamp_of(msg), msg)
                 except ValueError as exc:
                     drops.add(f"{role}_stamp", str(exc))
+        sync.flush()   # the bag's last sets: no later message will make them final
         frames = []
         for s in sets:
             color, depth, info = s.msgs[:3]

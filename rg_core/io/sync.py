@@ -4,9 +4,14 @@ node (rg_ros) and by the rosbag2 reader (`rg map BAG`).
 Simplified ApproximateTimeSynchronizer semantics, independent of rclpy so it is unit-testable:
 each topic has a queue of at most `queue_size` messages kept sorted by stamp (out-of-order arrival
 is fine). After every arrival the set with one message per topic and the smallest stamp spread is
-found; if that spread is <= `slop` seconds it is emitted at once, and the emitted messages and
-everything older in their queues are removed. Messages pushed out of a full queue, passed over by
-an emitted set, or older than the last emitted stamp of their topic are counted as dropped.
+found. It is emitted when its spread is <= `slop` seconds and no later arrival can pair it better:
+its stamps are equal (spread 0), or every topic has already received a message at or after the
+set's newest stamp (message_filters' ApproximateTime waits the same way). Emitting the first set
+within slop instead mixes frames whenever topics arrive out of step and frames are closer than the
+slop (a burst): rgb of one frame with depth or pose of another. The emitted messages and everything
+older in their queues are removed. Messages pushed out of a full queue, passed over by an emitted
+set, or older than the last emitted stamp of their topic are counted as dropped. `flush()` emits
+what is left (the end of a bag).
 """
 from __future__ import annotations
 
@@ -41,6 +46,7 @@ class ApproximateTimeSync:
         with self._lock:
             self._queues: list[list[tuple[float, int, Any]]] = [[] for _ in self.topics]   # sorted by stamp
             self._last: list[float | None] = [None] * len(self.topics)
+            self._newest = [-math.inf] * len(self.topics)   # the newest stamp received per topic
             self._dropped = [0] * len(self.topics)
             self._emitted = 0
 
@@ -54,7 +60,8 @@ class ApproximateTimeSync:
         return self._emitted
 
     def add(self, topic: Hashable, stamp: float, msg: Any) -> SyncedSet | None:
-        """Queue one message; returns (and passes to the callback) a synchronised set if one is ready."""
+        """Queue one message; returns the newest synchronised set it completed (every one completed,
+        oldest first, goes to the callback), None if none."""
         if topic not in self._index:
             raise KeyError(f"unknown topic {topic!r}; known: {list(self.topics)}")
         stamp = float(stamp)
@@ -63,41 +70,71 @@ class ApproximateTimeSync:
         i = self._index[topic]
         with self._lock:
             out = self._add_locked(i, stamp, msg)
-        if out is not None and self.callback is not None:
-            self.callback(out)
+        if self.callback is not None:
+            for s in out:
+                self.callback(s)
+        return out[-1] if out else None
+
+    def flush(self) -> list[SyncedSet]:
+        """Emit every set within slop that is left, final or not (no more messages will come)."""
+        with self._lock:
+            out = []
+            while emitted := self._emit(final_only=False):
+                out += emitted
+        if self.callback is not None:
+            for s in out:
+                self.callback(s)
         return out
 
-    def _add_locked(self, i: int, stamp: float, msg: Any) -> SyncedSet | None:
+    def _add_locked(self, i: int, stamp: float, msg: Any) -> list[SyncedSet]:
         if self._last[i] is not None and stamp <= self._last[i]:   # a set at or after it already went out
             self._dropped[i] += 1
-            return None
+            return []
         q = self._queues[i]
         bisect.insort(q, (stamp, next(self._seq), msg))
+        self._newest[i] = max(self._newest[i], stamp)
         if len(q) > self.queue_size:
             q.pop(0)
             self._dropped[i] += 1
-        best = self._closest_set()
+        return self._emit(final_only=True)
+
+    def _emit(self, final_only: bool) -> list[SyncedSet]:
+        """Take the ready sets out of the queues, oldest first: the closest set if it is final (or
+        `final_only` is off) and, before it, the ready sets among the messages older than its own."""
+        chain = self._ready(list(map(len, self._queues)), final_only)
+        out = []
+        for spread, members in chain:
+            for k, m in enumerate(members):
+                qk = self._queues[k]
+                j = next(n for n, e in enumerate(qk) if e[1] == m[1])
+                self._dropped[k] += j   # older messages passed over by this set
+                del qk[: j + 1]
+                self._last[k] = m[0]
+            self._emitted += 1
+            out.append(SyncedSet(tuple(m[0] for m in members), tuple(m[2] for m in members), spread))
+        return out
+
+    def _ready(self, ends: list[int], final_only: bool) -> list[tuple[float, list[tuple]]]:
+        best = self._closest_set(ends)
         if best is None or best[0] > self.slop:
-            return None
+            return []
         spread, picks = best
-        chosen = []
-        for k, j in enumerate(picks):
-            qk = self._queues[k]
-            chosen.append(qk[j])
-            self._dropped[k] += j   # older messages passed over by this set
-            del qk[: j + 1]
-            self._last[k] = chosen[-1][0]
-        self._emitted += 1
-        return SyncedSet(tuple(c[0] for c in chosen), tuple(c[2] for c in chosen), spread)
+        members = [q[j] for q, j in zip(self._queues, picks)]
+        older = self._ready(picks, final_only)   # the messages before this set, each topic
+        newest = max(m[0] for m in members)
+        if final_only and spread > 0 and any(n < newest for n in self._newest):
+            return older   # a topic's partner may still come and pair better
+        return older + [(spread, members)]
 
-    def _closest_set(self) -> tuple[float, list[int]] | None:
-        """(spread, index per queue) of the set with the smallest stamp spread, earliest on ties.
+    def _closest_set(self, ends: list[int]) -> tuple[float, list[int]] | None:
+        """(spread, index per queue) of the set with the smallest stamp spread, earliest on ties,
+        among the first ends[k] messages of each queue k.
 
-        Each queued message is tried as the set's earliest member; every other queue then
+        Each such message is tried as the set's earliest member; every other queue then
         contributes its first message at or after it (any later one only widens the spread)."""
-        if any(not q for q in self._queues):
+        if any(e == 0 for e in ends):
             return None
-        stamps = [[e[0] for e in q] for q in self._queues]
+        stamps = [[e[0] for e in q[:n]] for q, n in zip(self._queues, ends)]
         best: tuple[float, list[int]] | None = None
         for k, sk in enumerate(stamps):
             for j, t0 in enumerate(sk):
