@@ -197,6 +197,7 @@ class MapWorker:
                             "seconds": round(sum(r.seconds.values()), 3)}
         if r.keyframe:
             self._refined_iters = 0
+            self.log.info("keyframe at %.3f (%d now): %s", f.stamp, len(self.mapper.keyframes), r.reason)
 
     def _idle_step(self) -> bool:
         """One slice of background work; False if there was nothing to do."""
