@@ -7,7 +7,8 @@ loopback; node RSS, queue, drops and query latency over time (rg_ros/endurance.p
 The scene: `rg synth` seed 5, 8 views 160x120, 3 objects, replayed by `rg-replay --loop` (stamps keep
 increasing); the node: features on, 80 px map, 2 iterations per keyframe, a queue of 4 (frames the
 mapper cannot take are dropped and counted, never queued). Faults (rg-replay --faults): after every
-500 frames a pose that is not a rotation, a 10-frame pose/TF gap or a 100-frame burst, in turn; every
+500 frames a pose that is not a rotation, a 10-frame pose/TF gap or a 100-frame burst (a stall, then
+its frames at once with their capture stamps), in turn; every
 5th /ground call goes out with a ~/save_map call. Targets (issue 28): peak RSS growth < 5 %
 over the last half of the run, p95 query latency of the last 10 % of the calls within 1.5x of the
 first 10 %, no crash, every call answered. Writes endurance.png.

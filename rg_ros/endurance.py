@@ -30,7 +30,7 @@ class EnduranceConfig:
     warmup_timeout: float = 300.0  # before the run: one slow pass of the scene, then wait (up to this many
                                    # seconds) for the node to settle: frames mapped, the field's first stop
     queries: tuple[str, ...] = ("orange", "the biggest object", "something to eat")
-    faults_every: int = 0          # rg-replay --faults: a bad pose, a pose/TF gap, a 100-frame burst in turn
+    faults_every: int = 0          # rg-replay --faults: a bad pose, a pose/TF gap, a 100-frame burst in turn (rg_ros.replay.Faults)
     save_every: int = 0            # every Nth /ground call goes out together with a ~/save_map call
     params: dict = field(default_factory=lambda: dict(
         pose_source="topic", map_width=80, iters_per_keyframe=2, torch_threads=1, frame_queue_size=4,

@@ -200,6 +200,7 @@ def replay_scene(args, ros_argv: list[str]) -> int:
         return 2
     import rclpy
     from geometry_msgs.msg import PoseStamped
+    from rclpy.duration import Duration
     from sensor_msgs.msg import CameraInfo, Image
 
     rclpy.init(args=ros_argv)
@@ -215,8 +216,9 @@ def replay_scene(args, ros_argv: list[str]) -> int:
     try:
         report_unmatched(log, wait_for_subscribers(pubs + ([tf_pub] if tf_pub else []), args.wait,
                                                    minimum=args.min_subscribers), args.wait, args.min_subscribers)
-        for f in _paced(frames, args, faults):
-            msgs = frame_messages(f, node.get_clock().now().to_msg(), args.frame_id, args.map_frame)
+        for f, lag in _paced(frames, args, faults):
+            stamp = node.get_clock().now() - Duration(nanoseconds=int(lag * 1e9))   # its capture time
+            msgs = frame_messages(f, stamp.to_msg(), args.frame_id, args.map_frame)
             with_pose = faults.next(msgs[3])
             for pub, msg in zip(pubs, msgs if with_pose else msgs[:3]):
                 pub.publish(msg)
@@ -236,8 +238,9 @@ def replay_scene(args, ros_argv: list[str]) -> int:
 
 class Faults:
     """--faults N: after every N frames the next fault, in turn: a frame whose pose is not a rotation
-    (quaternion 0, 0, 0, 0), a pose/TF gap (the next GAP frames without pose or TF), a burst (the next
-    BURST frames at once, unpaced). `counts` says how many of each were injected."""
+    (quaternion 0, 0, 0, 0), a pose/TF gap (the next GAP frames without pose or TF), a burst (a
+    stalled link: nothing for BURST frame periods, then the BURST frames captured meanwhile at once,
+    each stamped with its capture time, see _paced). `counts` says how many of each were injected."""
 
     KINDS = ("bad_pose", "tf_gap", "burst")
     GAP, BURST = 10, 100
@@ -265,27 +268,28 @@ class Faults:
             self.burst = self.BURST
         return True
 
-    def unpaced(self) -> bool:
-        """True while a burst lasts (one frame used up per call)."""
-        if self.burst:
-            self.burst -= 1
-            return True
-        return False
-
 
 def _paced(frames: list, args, faults: Faults | None = None):
-    """Yield the frames at args.rate Hz, once or forever (--loop), at most --count of them; frames of a
-    fault burst go out at once."""
+    """Yield (frame, lag s) at args.rate Hz, once or forever (--loop), at most --count of them. lag:
+    how long before it is sent the frame was captured (its stamp is now - lag): 0, except in a
+    fault burst, which waits faults.BURST frame periods (the stall) and then sends the frames of
+    that time at once, each with its capture stamp, as a camera's frames held up by a link arrive."""
     next_t, sent = time.monotonic(), 0
     while True:
         for f in frames:
-            yield f
+            lag = 0.0
+            if faults is not None and faults.burst:
+                if faults.burst == faults.BURST:
+                    time.sleep(faults.BURST / args.rate)   # the stall
+                faults.burst -= 1
+                lag = faults.burst / args.rate
+                next_t = time.monotonic()
+            yield f, lag
             sent += 1
             if args.count and sent >= args.count:
                 return
-            if faults is not None and faults.unpaced():
-                next_t = time.monotonic()
-                continue
+            if faults is not None and faults.burst:
+                continue   # the rest of a burst (or the stall before it) follows at once
             next_t += 1.0 / args.rate
             time.sleep(max(0.0, next_t - time.monotonic()))
         if not args.loop:

@@ -142,7 +142,8 @@ def replay_main(argv: list[str] | None = None) -> int:
     ap.add_argument("--split", choices=("train", "test", "all"), default="train")
     ap.add_argument("--faults", type=int, default=0, metavar="N",
                     help="scene: after every N frames inject a fault in turn: a pose that is not a rotation, a "
-                         "10-frame pose/TF gap, a burst of 100 frames at once (counts logged at the end; 0 = none)")
+                         "10-frame pose/TF gap, a stall of 100 frame periods whose frames then arrive at once with their capture "
+                         "stamps (counts logged at the end; 0 = none)")
     ap.add_argument("--wait", type=float, default=5.0, help="seconds to wait for subscribers on every topic before "
                                                               "publishing (then publish anyway, naming the topics without)")
     ap.add_argument("--min-subscribers", type=int, default=1, help="subscriptions every topic waits for (default 1)")

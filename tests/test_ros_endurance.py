@@ -77,13 +77,17 @@ def test_replay_fault_schedule(monkeypatch):
     assert [i for i, b in enumerate(bad) if b] == [4, 29]                  # frames 5 and 30: bad pose
     assert [i for i, s in enumerate(sent) if not s] == list(range(10, 20))  # after frame 10: 10 frames without pose
     assert f.counts == {"bad_pose": 2, "tf_gap": 1, "burst": 1} and f.burst == 100   # burst at 25 (20: in the gap)
-    assert Faults(0).next(PoseStamped()) and not Faults(0).unpaced()
-    # a burst goes out at once: no pause among its 100 frames, the frames after it paced again
+    assert Faults(0).next(PoseStamped()) and Faults(0).burst == 0
+    # a burst: a stall of 100 frame periods, then its 100 frames at once, each stamped with its
+    # capture time (lag before sending: 99 ... 0 periods); the frames after it paced again
     import rg_ros.replay as replay
 
     pauses = []
     monkeypatch.setattr(replay.time, "sleep", pauses.append)
     f = Faults(0)
     f.burst = 100
-    frames = list(_paced(list(range(10)), SimpleNamespace(rate=1.0, count=103, loop=True), f))
-    assert len(frames) == 103 and len(pauses) == 2
+    out = list(_paced(list(range(10)), SimpleNamespace(rate=2.0, count=103, loop=True), f))
+    assert [x for x, _ in out] == [k % 10 for k in range(103)]
+    assert [lag for _, lag in out] == [k / 2.0 for k in range(99, -1, -1)] + [0.0] * 3
+    assert pauses[0] == 50.0   # the stall; then one period each after the burst (sleep mocked: no time passes)
+    assert pauses[1:] == pytest.approx([0.5, 1.0, 1.5], abs=0.01)

@@ -42,7 +42,8 @@ class InputConfig:
     sync_queue_size: Annotated[int, Interval(ge=1, le=1000)] = 10
     """Messages per input kept by the approximate time synchroniser."""
     sync_slop: Annotated[float, Interval(ge=0.0, le=10.0)] = 0.05
-    """Largest stamp spread (s) of one synchronised colour/depth/info set."""
+    """Largest stamp spread (s) of one synchronised colour/depth/info set; a set whose stamps differ
+    goes out once every input has a message past it (equal stamps: at once)."""
 
     def __post_init__(self):
         check_fields(self)
