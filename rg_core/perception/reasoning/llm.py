@@ -101,16 +101,22 @@ def _load_json(text: str):
     raise AnswerError(f"answer is not valid JSON ({first_error}) and holds no JSON object: {text[:120]!r}")
 
 
+def json_object(text: str, expected: str = "an object") -> dict:
+    """A model's answer text -> the JSON object in it; AnswerError when it is empty or holds none."""
+    if not isinstance(text, str) or not text.strip():
+        raise AnswerError("empty answer")
+    data = _load_json(text)
+    if not isinstance(data, dict):
+        raise AnswerError(f"answer is JSON {type(data).__name__}, expected {expected}")
+    return data
+
+
 def parse_answer(text: str, vocabulary: list[str], text_model=None,
                  min_name_similarity: float = 0.8) -> tuple[str, str, float]:
     """Model answer -> (vocabulary name, reason, name-match score). The object_name must be a
     vocabulary name, the same ignoring case/articles/plurals (score 1), or, with a text model,
     nearer than `min_name_similarity` to one (score = that similarity)."""
-    if not isinstance(text, str) or not text.strip():
-        raise AnswerError("empty answer")
-    data = _load_json(text)
-    if not isinstance(data, dict):
-        raise AnswerError(f"answer is JSON {type(data).__name__}, expected an object with object_name and reason")
+    data = json_object(text, "an object with object_name and reason")
     missing = [k for k in ("object_name", "reason") if k not in data]
     if missing:
         raise AnswerError(f"answer lacks key(s) {missing}: {json.dumps(data)[:120]}")
@@ -155,12 +161,7 @@ class LLMReasoner(Reasoner):
             raise AnswerError(f"question must be 1-{self.max_query_chars} characters of text")
         text = self.complete([{"role": "system", "content": system}, {"role": "user", "content": user.strip()}],
                              schema, time.perf_counter() + self.timeout_s)
-        if not isinstance(text, str) or not text.strip():
-            raise AnswerError("empty answer")
-        data = _load_json(text)
-        if not isinstance(data, dict):
-            raise AnswerError(f"answer is JSON {type(data).__name__}, expected an object")
-        return data
+        return json_object(text)
 
     def image_url(self, image: np.ndarray | None) -> str | None:
         return None
