@@ -41,7 +41,7 @@ def to_rows(report: dict) -> tuple[list[dict], str]:
              "faults": " ".join(f"{k} {v}" for k, v in (s.get("faults_injected") or {}).items()) or "none",
              "frames_rejected_bad_input": s.get("input_errors"), "saves_ok": f"{s.get('saves_ok')}/{s.get('saves')}",
              "keyframes_min": s.get("keyframes_min_after_warmup"), "keyframes_end": s.get("keyframes"),
-             **{k: "-" if s.get(k) is None else s[k] for k in ("revisits", "keyframes_replaced")}}]
+             **{k: "-" if s.get(k) is None else s[k] for k in ("revisits", "keyframes_replaced", "sync_mixed")}}]
     return rows, (f"{report['frames']} frames at {report['rate']:g} Hz from rg synth seed 5 (8 views 160x120, looped), "
                   f"a /ground call every {report['ground_period']:g} s (3 queries in turn), node features on, 80 px "
                   f"map, queue 4; RSS growth = peak at the end over the peak of the first half; faults every "

@@ -368,6 +368,7 @@ class GroundingNode(TFInput, Node):
     def status(self) -> dict:
         st = self.worker.stats()
         st["sync_dropped"] = sum(self.sync.dropped.values())
+        st["sync_mixed"] = self.sync.mixed   # sets refused: they would have paired messages of two frames
         st["input_errors"] = dict(self.input_errors)
         st["messages"] = dict(self.msgs_in)
         st["pose_source"] = self.p.pose_source

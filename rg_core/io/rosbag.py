@@ -306,7 +306,8 @@ def read_bag(path: str | Path, opts: BagOptions | None = None, test_every: int =
     info = {"bag": str(path), "topics": topics, "pose_source": opts.pose_source, "map_frame": opts.map_frame,
             "messages": counts, "paired": len(sets), "frames": len(frames),
             "dropped": dict(drops.counts), "dropped_examples": dict(drops.examples),
-            "sync_dropped": {k: v for k, v in sync_dropped.items() if v}, "tf_rejected": len(tf_errors),
+            "sync_dropped": {k: v for k, v in sync_dropped.items() if v}, "sync_mixed": sync.mixed,
+            "tf_rejected": len(tf_errors),
             "tf_rejected_examples": tf_errors[:3]}
     if not frames:
         why = "; ".join(f"{k} x{v}: {drops.examples[k]}" for k, v in drops.counts.items()) or \

@@ -6,16 +6,23 @@ each topic has a queue of at most `queue_size` messages kept sorted by stamp (ou
 is fine). After every arrival the set with one message per topic and the smallest stamp spread is
 found. It is emitted when its spread is <= `slop` seconds and no later arrival can pair it better:
 its stamps are equal (spread 0), or every topic has already received a message at or after the
-set's newest stamp (message_filters' ApproximateTime waits the same way). Emitting the first set
-within slop instead mixes frames whenever topics arrive out of step and frames are closer than the
-slop (a burst): rgb of one frame with depth or pose of another. The emitted messages and everything
+set's newest stamp (message_filters' ApproximateTime waits the same way; emitting the first set
+within slop mixed frames whenever topics arrived out of step). The emitted messages and everything
 older in their queues are removed. Messages pushed out of a full queue, passed over by an emitted
 set, or older than the last emitted stamp of their topic are counted as dropped. `flush()` emits
 what is left (the end of a bag).
+
+A set never mixes frames: when messages are lost and the slop is as wide as the frame interval, the
+closest set can pair one frame's colour with the next frame's depth and pose. Each topic's frame
+interval is the lower quartile of its recent stamp gaps (the smallest of its first three); a member
+more than MIX of its own interval away from the mean stamp of the others is out of place, and the
+stale side (that member if older, the members older than it if newer) is dropped and counted in
+`mixed`. Before a topic's first gaps are seen (the first frames) the check is weaker.
 """
 from __future__ import annotations
 
 import bisect
+import collections
 import itertools
 import math
 import threading
@@ -29,6 +36,9 @@ class SyncedSet(NamedTuple):
 
 
 class ApproximateTimeSync:
+    MIX = 0.6        # a member this many of its topic's frame intervals from the others' mean stamp is out of place
+    GAPS = 16        # recent stamp gaps per topic behind its frame interval
+
     def __init__(self, topics: Sequence[Hashable], queue_size: int = 10, slop: float = 0.05,
                  callback: Callable[[SyncedSet], None] | None = None):
         if len(topics) < 2 or len(set(topics)) != len(topics):
@@ -47,6 +57,8 @@ class ApproximateTimeSync:
             self._queues: list[list[tuple[float, int, Any]]] = [[] for _ in self.topics]   # sorted by stamp
             self._last: list[float | None] = [None] * len(self.topics)
             self._newest = [-math.inf] * len(self.topics)   # the newest stamp received per topic
+            self._gaps = [collections.deque(maxlen=self.GAPS) for _ in self.topics]
+            self._mixed = 0
             self._dropped = [0] * len(self.topics)
             self._emitted = 0
 
@@ -58,6 +70,11 @@ class ApproximateTimeSync:
     @property
     def emitted(self) -> int:
         return self._emitted
+
+    @property
+    def mixed(self) -> int:
+        """Sets refused because they would have mixed frames (their stale messages are dropped)."""
+        return self._mixed
 
     def add(self, topic: Hashable, stamp: float, msg: Any) -> SyncedSet | None:
         """Queue one message; returns the newest synchronised set it completed (every one completed,
@@ -92,7 +109,10 @@ class ApproximateTimeSync:
             return []
         q = self._queues[i]
         bisect.insort(q, (stamp, next(self._seq), msg))
-        self._newest[i] = max(self._newest[i], stamp)
+        if stamp > self._newest[i]:
+            if math.isfinite(self._newest[i]):
+                self._gaps[i].append(stamp - self._newest[i])
+            self._newest[i] = stamp
         if len(q) > self.queue_size:
             q.pop(0)
             self._dropped[i] += 1
@@ -100,19 +120,57 @@ class ApproximateTimeSync:
 
     def _emit(self, final_only: bool) -> list[SyncedSet]:
         """Take the ready sets out of the queues, oldest first: the closest set if it is final (or
-        `final_only` is off) and, before it, the ready sets among the messages older than its own."""
-        chain = self._ready(list(map(len, self._queues)), final_only)
+        `final_only` is off) and, before it, the ready sets among the messages older than its own.
+        A ready set that would mix frames drops its stale messages instead, and the search starts over."""
         out = []
-        for spread, members in chain:
-            for k, m in enumerate(members):
-                qk = self._queues[k]
-                j = next(n for n, e in enumerate(qk) if e[1] == m[1])
-                self._dropped[k] += j   # older messages passed over by this set
-                del qk[: j + 1]
-                self._last[k] = m[0]
-            self._emitted += 1
-            out.append(SyncedSet(tuple(m[0] for m in members), tuple(m[2] for m in members), spread))
-        return out
+        while True:
+            chain = self._ready(list(map(len, self._queues)), final_only)
+            for spread, members in chain:
+                stale, mixed = self._stale(members)
+                if stale:
+                    for k in stale:
+                        self._queues[k].remove(members[k])
+                        self._dropped[k] += 1
+                    self._mixed += mixed
+                    break
+                for k, m in enumerate(members):
+                    qk = self._queues[k]
+                    j = next(n for n, e in enumerate(qk) if e[1] == m[1])
+                    self._dropped[k] += j   # older messages passed over by this set
+                    del qk[: j + 1]
+                    self._last[k] = m[0]
+                self._emitted += 1
+                out.append(SyncedSet(tuple(m[0] for m in members), tuple(m[2] for m in members), spread))
+            else:
+                return out
+
+    def _interval(self, k: int) -> float | None:
+        """Topic k's frame interval: the lower quartile of its recent stamp gaps (a lost message
+        doubles a gap), their smallest while there are fewer than 4; None before the first gap."""
+        g = sorted(self._gaps[k])
+        return None if not g else g[(len(g) - 1) // 4] if len(g) >= 4 else g[0]
+
+    def _stale(self, members: list[tuple]) -> tuple[list[int], bool]:
+        """(topics whose member of this set is stale, whether the set would have mixed frames):
+        ([], False) if none is. A stale member with a message of its own topic queued nearer to the
+        others (a faster topic: another of its messages fits better) is passed over, not a mix."""
+        t = [m[0] for m in members]
+        n = len(t)
+        out, mixed = set(), False
+        for k in range(n):
+            p = self._interval(k)
+            mean = (sum(t) - t[k]) / (n - 1)
+            d = t[k] - mean
+            if p is None or abs(d) <= self.MIX * p:
+                continue
+            if d < 0:                 # older than its partners: its own partners were lost, or a later one fits
+                out.add(k)
+                mixed |= not any(abs(e[0] - mean) < abs(d) for e in self._queues[k] if e[0] > t[k])
+            else:                     # newer: the partners are of an older frame whose message k was lost
+                old = {j for j in range(n) if t[j] < t[k] - self.MIX * (self._interval(j) or p)}
+                out |= old
+                mixed |= bool(old)
+        return sorted(out), mixed
 
     def _ready(self, ends: list[int], final_only: bool) -> list[tuple[float, list[tuple]]]:
         best = self._closest_set(ends)
