@@ -218,6 +218,24 @@ def test_support_ordinals_heights_and_all_over_a_built_graph():
     assert r.success and "2 'table' in the map: relating to the most certain (0.90)" in r.explanation
 
 
+def test_on_the_table_without_a_table_in_the_map_means_on_no_other_object():
+    """A table top's map rarely holds the table as an object: "on the table" then counts what rests
+    on a surface rather than on another object, and says so; another missing anchor is still an error."""
+    plate = obj("plate", "white", (0.0, 0.0, 0.75), (0.2, 0.2, 0.77))
+    cups = [obj("red cup", "red", (0.5, 0.0, 0.75), (0.58, 0.08, 0.85)),
+            obj("blue cup", "blue", (0.05, 0.05, 0.77), (0.13, 0.13, 0.87))]    # the blue cup stands on the plate
+    objs = [plate, *cups]
+    r = _ask("how many cups are on the table?", objs)
+    assert r.success and len(r.objects) == 1 and r.objects[0] is cups[0].obj, r.message
+    assert r.message.startswith("1 'cup' on the table") and "read as resting on a surface" in r.explanation
+    assert _ask("the cup on the desk", objs).target == "red cup"
+    assert _ask("how many cups are on the plate", objs).objects == [cups[1].obj]
+    r = _ask("how many cups are on the giraffe", objs)
+    assert not r.success and "no 'giraffe' in the map to relate to" in r.message
+    r = _ask("the cup next to the table", objs)      # only "on" reads a missing support as a surface
+    assert not r.success and "no 'table' in the map to relate to" in r.message
+
+
 def test_relational_descriptions_of_absent_things_take_the_usual_path(grounder):
     r = grounder.ground("small metal scoop on a handle")       # a description of a spoon, not a relation
     assert "graph" not in r.timings

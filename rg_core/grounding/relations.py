@@ -24,6 +24,9 @@ from .result import GroundedObject, GroundingResult
 NEAR_GAP = 0.10        # metres between two objects' boxes that still count as near (counting, "all")
 SAME_OBJECT = 0.5      # answers sharing this share of the smaller one's Gaussians are one object
 MIN_GAUSSIANS = 5      # fewer Gaussians are a speck, not an object
+# Supports a map rarely holds as an object (a plane under everything): "on the table" without a
+# table in the graph means resting on a surface, not on another object.
+SURFACES = ("table", "desk", "counter", "countertop", "worktop", "shelf", "surface", "floor", "ground", "bench")
 
 
 @dataclass
@@ -219,22 +222,27 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
     camera's -y)."""
     res = GroundingResult(False, "", query=query, target=rq.target)
     known = ", ".join(sorted({o.name for o in objs})) or "none"
-    anchors = []
+    anchors, notes = [], []
     for a in rq.anchors:
         found = [o for o in objs if o.name == a] or sorted(_match(objs, a), key=lambda o: -o.names[0][1])
+        if not found and rq.relation == "on" and _singular(a) in SURFACES:
+            notes.append(f"no {a!r} among the map's objects: 'on the {a}' read as resting on a surface, "
+                         f"not on another object")
+            continue
         if not found:
             res.message = f"no {a!r} in the map to relate to (objects: {known})"
             res.explanation = rq.describe()
             return res
         anchors.append((a, found))
+    on_surface = rq.relation == "on" and not anchors
     cands = [o for o in _match(objs, rq.target, rq.colour) if all(o is not f[0] for _, f in anchors)]
     what = " ".join(x for x in (rq.colour, rq.target or "object") if x)
     if not cands:
         res.message = f"no {what!r} in the map (objects: {known})"
         res.explanation = rq.describe()
         return res
-    notes = [f"{len(f)} {a!r} in the map: relating to the most certain ({f[0].names[0][1]:.2f})"
-             for a, f in anchors if len(f) > 1]
+    notes += [f"{len(f)} {a!r} in the map: relating to the most certain ({f[0].names[0][1]:.2f})"
+              for a, f in anchors if len(f) > 1]
     c2w = np.asarray(cam_to_world, np.float64)
     w2c = np.linalg.inv(c2w)
     cam = lambda p: w2c[:3, :3] @ p + w2c[:3, 3]                                  # noqa: E731 - world -> camera
@@ -244,7 +252,14 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
     ref = [f[0] for _, f in anchors]
     point = (ref[0].centre + ref[1].centre) / 2 if rq.relation == "between" else ref[0].centre if ref else None
     where = ""
-    if rq.relation:   # keep the candidates the relation holds for (near / between: all, ranked below)
+    if on_surface:   # the support itself is not an object of the map: on no other object
+        cands = [o for o in cands if not any(x is not o and _vertical("on", G(o), G(x)) for x in objs)]
+        where = f" on the {rq.anchors[0]}"
+        if not cands and not rq.count:
+            res.message = f"no {what!r}{where}"
+            res.explanation = "; ".join([rq.describe(), res.message] + notes) + "."
+            return res
+    elif rq.relation:   # keep the candidates the relation holds for (near / between: all, ranked below)
         pc = cam(point)
         keep = {"left": lambda o: cam(o.centre)[0] < pc[0], "right": lambda o: cam(o.centre)[0] > pc[0],
                 "front": lambda o: cam(o.centre)[2] < pc[2], "behind": lambda o: cam(o.centre)[2] > pc[2],
@@ -289,7 +304,7 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
         why = f"{rq.superlative.replace('_', ' ')} of {len(cands)}: {fmt(chosen[0])}" + (
             f", next {fmt(cands[1])}" if len(cands) > 1 else "")
         why += f" ({camera})" if rq.superlative == "nearest_camera" else ""
-    elif rq.relation:
+    elif rq.relation and not on_surface:
         if rq.relation in ("on", "under", "above"):   # the one most squarely on / under the anchor
             d = sorted((float(np.linalg.norm(G(o).xy - G(ref[0]).xy)), i) for i, o in enumerate(cands))
             unit = "m from its centre"
@@ -301,7 +316,7 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
             f", next nearest {d[1][0]:.2f} m" if len(d) > 1 else "") + ")"
     else:   # attribute only ("the red cup"): the most certain
         chosen = sorted(cands, key=lambda o: (rq.colour not in o.name.split(), -o.names[0][1]))   # named so first
-        why = f"{len(cands)} {what!r} in the map" + (", the most certain" if len(cands) > 1 else "")
+        why = f"{len(cands)} {what!r}{where} in the map" + (", the most certain" if len(cands) > 1 else "")
     chosen = chosen if rq.count or rq.every else chosen[:max(max_results, 1)]
     if not chosen:   # counting nothing is an answer: zero
         res.success, res.message = True, f"0 {what!r}{where} in the map"
