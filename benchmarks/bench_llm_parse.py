@@ -3,6 +3,7 @@ benchmark's queries: how often the model's JSON is usable, how often it reads th
 parser does, and seconds per query.
 
     python benchmarks/bench_llm_parse.py [--seeds 411 ... 420] [--backend llama_cpp] [--gguf PATH]
+                                         [--backend openai --openai-url URL --openai-model NAME]
                                          [--limit N] [--json] [--record]
 
 Queries: bench_relations' generated and hand-written ones on the same `rg synth` scenes (ground truth
@@ -95,11 +96,15 @@ def main() -> int:
     ap.add_argument("--views", type=int, default=30)
     ap.add_argument("--backend", default="llama_cpp", choices=("llama_cpp", "openai"))
     ap.add_argument("--gguf", default="", help="llama_cpp: GGUF file (default: the packaged SmolLM2-135M)")
+    ap.add_argument("--openai-url", default="", help="openai: the endpoint (default: reason.openai_base_url)")
+    ap.add_argument("--openai-model", default="", help="openai: the model (default: reason.openai_model)")
     ap.add_argument("--limit", type=int, default=0, help="at most this many queries (0 = all)")
     add_output_flags(ap)
     args = ap.parse_args()
     cfg = RGConfig()
     cfg.reason.backend, cfg.reason.gguf_path, cfg.reason.llm_parse = args.backend, args.gguf, True
+    cfg.reason.openai_base_url = args.openai_url or cfg.reason.openai_base_url
+    cfg.reason.openai_model = args.openai_model or cfg.reason.openai_model
     from rg_core.perception.reasoning import reasoner_from_config
 
     reasoner = reasoner_from_config(cfg.reason)
