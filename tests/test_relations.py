@@ -317,6 +317,29 @@ def test_llm_parser_answers_that_break_the_schema_are_refused(data, message):
     assert message in str(exc.value)
 
 
+@pytest.mark.parametrize("query, fields, message", [
+    ("the red cups next to the laptops", _fields(target="cup", colour="red", relation="near", anchors=["laptop"]), None),
+    ("how many apples are there", _fields(target="apple", count=True), None),
+    ("the largest thing", _fields(superlative="biggest"), None),             # enum words need not be the query's
+    # what SmolLM2-135M answered for these (bench_llm_parse): its prompt's example, not the query
+    ("the object closest to the lemon", _fields(target="cup", colour="red", relation="between", anchors=["red", "orange"],
+                                                superlative="biggest", ordinal=2, side="left"), "target 'cup' is not in the query"),
+    ("the object between the bowl and the fork", _fields(relation="between", anchors=["bowl", "spoon"]),
+     "anchor 'spoon' is not in the query"),
+    ("the cup left of the bowl", _fields(target="cup", colour="blue", relation="left", anchors=["bowl"]),
+     "colour 'blue' is not in the query"),
+])
+def test_llm_parses_naming_what_the_query_never_said_are_refused(query, fields, message):
+    from rg_core.grounding.phrases import _check_words_in, from_fields
+
+    rq = from_fields(fields)
+    if message is None:
+        _check_words_in(rq, query)
+    else:
+        with pytest.raises(ValueError, match=message):
+            _check_words_in(rq, query)
+
+
 def test_llm_parse_option_falls_back_to_the_rules_when_the_model_is_unreachable(oracle_field, synth_scene, grounder):
     """reason.llm_parse with an OpenAI endpoint nobody serves: the rule parser answers, the same
     objects as without the option, and the explanation says why."""

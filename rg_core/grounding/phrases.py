@@ -255,6 +255,19 @@ def from_fields(data: dict) -> Relational | None:
     return None if rq.attribute_only and not rq.colour else rq
 
 
+def _check_words_in(rq: Relational | None, query: str) -> None:
+    """ValueError unless the parse's target, anchors and colour are words of the query (singular
+    or plural): a model that answers with names the query never said (a small one copies its
+    prompt's example) has not read it."""
+    if rq is None:
+        return
+    words = " " + " ".join(_singular(w) for w in re.findall(r"[a-z0-9']+", query.lower())) + " "
+    for what, name in [("target", rq.target), ("colour", rq.colour)] + [("anchor", a) for a in rq.anchors]:
+        n = " ".join(_singular(w) for w in re.findall(r"[a-z0-9']+", name.lower()))
+        if n and f" {n} " not in words:
+            raise ValueError(f"{what} {name!r} is not in the query")
+
+
 def parse_with(reasoner, query: str) -> tuple[Relational | None, str]:
     """(parse, how it was parsed): the reasoner's LLM when it has one (`ask_json`), else or when its
     answer is unusable, the rule parser; the note goes into the explanation."""
@@ -262,6 +275,7 @@ def parse_with(reasoner, query: str) -> tuple[Relational | None, str]:
         return parse(query), ""
     try:
         rq, note = from_fields(reasoner.ask_json(LLM_PARSE_PROMPT, query, LLM_PARSE_SCHEMA)), f"parsed by the {reasoner.name} model"
+        _check_words_in(rq, query)
     except Exception as exc:  # noqa: BLE001 - any failure of the model means: the rule parser
         why = reasoner.describe(exc) if hasattr(reasoner, "describe") else f"{type(exc).__name__}: {exc}"
         rq, note = parse(query), f"{reasoner.name} parse unusable ({why}); parsed by rules"
