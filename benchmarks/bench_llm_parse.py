@@ -26,14 +26,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from rg_core.config import RGConfig, SynthConfig  # noqa: E402
-from rg_core.synth.generator import default_objects_dir, generate_scene  # noqa: E402
+from rg_core.config import RGConfig  # noqa: E402
 from _common import add_output_flags, finish  # noqa: E402
+from bench_relations import add_scene_args, gt_colours, make_scene, queries  # noqa: E402
 
 
 def scene_queries(path: Path, seed: int) -> list[dict]:
-    from bench_relations import gt_colours, queries
-
     from rg_core.io.captures import read_scene
 
     scene = read_scene(path)
@@ -90,10 +88,7 @@ def to_rows(report: dict) -> tuple[list[dict], str]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", type=int, nargs="*", default=list(range(411, 421)))
-    ap.add_argument("--objects", type=int, default=10)
-    ap.add_argument("--same-category", type=int, default=3)
-    ap.add_argument("--views", type=int, default=30)
+    add_scene_args(ap)
     ap.add_argument("--backend", default="llama_cpp", choices=("llama_cpp", "openai"))
     ap.add_argument("--gguf", default="", help="llama_cpp: GGUF file (default: the packaged SmolLM2-135M)")
     ap.add_argument("--openai-url", default="", help="openai: the endpoint (default: reason.openai_base_url)")
@@ -111,10 +106,7 @@ def main() -> int:
     qs = []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
-            d = Path(tmp) / f"seed{seed}"
-            generate_scene(d, SynthConfig(views=args.views, seed=seed, objects=args.objects,
-                                          same_category=args.same_category), default_objects_dir(), progress=False)
-            qs += scene_queries(d, seed)
+            qs += scene_queries(make_scene(Path(tmp) / f"seed{seed}", seed, args), seed)
     if args.limit:
         qs = [qs[i] for i in np.random.default_rng(0).permutation(len(qs))[:args.limit]]
     rows = measure(qs, reasoner)

@@ -290,12 +290,25 @@ def to_rows(report: dict) -> tuple[list[dict], str]:
                  f"{notes}")
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_scene_args(ap) -> None:
+    """The scenes' options (also bench_llm_parse's, which asks the same queries)."""
     ap.add_argument("--seeds", type=int, nargs="*", default=list(range(411, 421)))
     ap.add_argument("--objects", type=int, default=10)
     ap.add_argument("--same-category", type=int, default=3)
     ap.add_argument("--views", type=int, default=30)
+
+
+def make_scene(d: Path, seed: int, args) -> Path:
+    """`rg synth` scene `seed` as these options ask, in folder d (kept if it exists)."""
+    if not d.exists():
+        generate_scene(d, SynthConfig(views=args.views, seed=seed, objects=args.objects,
+                                      same_category=args.same_category), default_objects_dir(), progress=False)
+    return d
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_scene_args(ap)
     ap.add_argument("--supervision", nargs="*", default=["oracle", "default"], choices=("oracle", "default"))
     ap.add_argument("--out", default="bench_out")
     add_output_flags(ap)
@@ -306,11 +319,7 @@ def main() -> int:
         for sup in args.supervision:
             rows, scenes = [], []
             for seed in args.seeds:
-                d = Path(tmp) / f"seed{seed}"
-                if not d.exists():
-                    generate_scene(d, SynthConfig(views=args.views, seed=seed, objects=args.objects,
-                                                  same_category=args.same_category),
-                                   default_objects_dir(), progress=False)
+                d = make_scene(Path(tmp) / f"seed{seed}", seed, args)
                 rs, sc = run_scene(d, seed, sup)
                 rows += [{**r, "supervision": sup} for r in rs]
                 scenes.append(sc)
