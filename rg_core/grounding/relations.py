@@ -161,15 +161,17 @@ class _Geometry:
         return bool(np.all(self.xy >= other.lo - margin) and np.all(self.xy <= other.hi + margin))
 
 
-def _vertical(rel: str, t: _Geometry, a: _Geometry) -> bool:
-    """on: resting on a's top (within 3 cm + 10 % of a's height, or sunk in by at most half its own
-    height: the hidden bottom is not mapped); above: over a's footprint and clear of it (not resting
+def _vertical(rel: str, t: _Geometry, a: _Geometry, sunk: bool = True) -> bool:
+    """on: resting on a's top (within 3 cm + 10 % of a's height, or, with `sunk`, sunk in by at most
+    half its own height: the hidden bottom is not mapped; without, 1 cm: neighbours whose boxes
+    overlap in height are not on each other); above: over a's footprint and clear of it (not resting
     on it); under: below a's middle, under its footprint."""
     if not t.over(a):
         return False
     if rel == "on":
         gap = t.bottom - a.top
-        return -0.5 * t.height - 0.02 <= gap <= 0.03 + 0.1 * a.height and t.middle > a.middle
+        low = -0.5 * t.height - 0.02 if sunk else -0.01
+        return low <= gap <= 0.03 + 0.1 * a.height and t.middle > a.middle
     if rel == "above":
         return t.bottom > a.top + 0.03 + 0.1 * a.height
     return t.top <= a.middle   # under
@@ -225,6 +227,8 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
     anchors, notes = [], []
     for a in rq.anchors:
         found = [o for o in objs if o.name == a] or sorted(_match(objs, a), key=lambda o: -o.names[0][1])
+        if rq.relation == "on" and _singular(a) in SURFACES:   # a support only by an object's own name, not
+            found = [o for o in found if _is_a(o.name, _singular(a))]   # a runner-up name (a clamp also 'table')
         if not found and rq.relation == "on" and _singular(a) in SURFACES:
             notes.append(f"no {a!r} among the map's objects: 'on the {a}' read as resting on a surface, "
                          f"not on another object")
@@ -252,8 +256,8 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
     ref = [f[0] for _, f in anchors]
     point = (ref[0].centre + ref[1].centre) / 2 if rq.relation == "between" else ref[0].centre if ref else None
     where = ""
-    if on_surface:   # the support itself is not an object of the map: on no other object
-        cands = [o for o in cands if not any(x is not o and _vertical("on", G(o), G(x)) for x in objs)]
+    if on_surface:   # the support itself is not an object of the map: standing on top of no other object
+        cands = [o for o in cands if not any(x is not o and _vertical("on", G(o), G(x), sunk=False) for x in objs)]
         where = f" on the {rq.anchors[0]}"
         if not cands and not rq.count:
             res.message = f"no {what!r}{where}"
