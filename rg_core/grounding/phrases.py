@@ -259,11 +259,13 @@ def _check_words_in(rq: Relational | None, query: str) -> None:
     """ValueError unless the parse's target, anchors and colour are words of the query (singular
     or plural): a model that answers with names the query never said (a small one copies its
     prompt's example) has not read it."""
+    from ..perception.reasoning.explicit import normalise
+
     if rq is None:
         return
-    words = " " + " ".join(_singular(w) for w in re.findall(r"[a-z0-9']+", query.lower())) + " "
+    words = f" {' '.join(normalise(query))} "
     for what, name in [("target", rq.target), ("colour", rq.colour)] + [("anchor", a) for a in rq.anchors]:
-        n = " ".join(_singular(w) for w in re.findall(r"[a-z0-9']+", name.lower()))
+        n = " ".join(normalise(name))
         if n and f" {n} " not in words:
             raise ValueError(f"{what} {name!r} is not in the query")
 

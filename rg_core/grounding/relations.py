@@ -227,9 +227,10 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
     anchors, notes = [], []
     for a in rq.anchors:
         found = [o for o in objs if o.name == a] or sorted(_match(objs, a), key=lambda o: -o.names[0][1])
-        if rq.relation == "on" and _singular(a) in SURFACES:   # a support only by an object's own name, not
-            found = [o for o in found if _is_a(o.name, _singular(a))]   # a runner-up name (a clamp also 'table')
-        if not found and rq.relation == "on" and _singular(a) in SURFACES:
+        support = rq.relation == "on" and _singular(a) in SURFACES
+        if support:   # a support only by an object's own name, not a runner-up name (a clamp also 'table')
+            found = [o for o in found if _is_a(o.name, _singular(a))]
+        if not found and support:
             notes.append(f"no {a!r} among the map's objects: 'on the {a}' read as resting on a surface, "
                          f"not on another object")
             continue
