@@ -1,9 +1,10 @@
 """Calibrated confidence and abstention (issue 26): fit the model on some scenes, report it on others.
 
     python benchmarks/bench_confidence.py --fit [--seeds 101 102 103 104 105 106]       # writes the model
-    python benchmarks/bench_confidence.py [--seeds 201 202 203] [--bop DIR] [--json] [--record]
+    python benchmarks/bench_confidence.py [--seeds 201 202 203] [--real DIR ...] [--json] [--record]
 
-Every scene (`rg synth`, 30 views 320x240, 7 objects, each seed; and the BOP scene) is evaluated by
+Every scene (`rg synth`, 30 views 320x240, 7 objects, each seed; and the real scenes: by default
+YCB-Video 0002 in BOP layout and the YCB-Video 0000 frames of ../shared/data/rgbd) is evaluated by
 `rg eval --implicit 3` with default and oracle supervision in fresh processes; each answered query
 gives its evidence (rg_core/grounding/confidence.py FEATURES) and whether it is right (target right
 and mean visible IoU >= 0.5). --fit fits a logistic regression on them (standardised features,
@@ -38,6 +39,7 @@ from _common import add_output_flags, finish  # noqa: E402
 RUN = "import sys; from rg_core.cli import main; sys.exit(main(sys.argv[1:]))"
 FIT_SEEDS = (101, 102, 103, 104, 105, 106)
 SUPERVISIONS = ("default", "oracle")   # one model each: their evidence lives on different scales
+REAL = ("ycbv_0002_bop", "ycb_video_3")   # held-out real scenes (../shared/data/rgbd): never fitted on
 MAX_WRONG = 0.08   # the threshold: the lowest at which the fit answers' wrong-returned share is at most this
 
 
@@ -68,14 +70,16 @@ def collect(scenes: list[tuple[str, str]], supervisions: list[str], workers: int
         return [q for qs in pool.map(one, jobs) for q in qs]
 
 
-def make_scenes(seeds, tmp: Path, bop: str | None) -> list[tuple[str, str]]:
+def make_scenes(seeds, tmp: Path, real: list[str]) -> list[tuple[str, str]]:
     out = []
     for seed in seeds:
         d = tmp / f"synth_seed{seed}"
         generate_scene(d, SynthConfig(views=30, seed=seed), default_objects_dir(), progress=False)
         out.append((f"synth seed {seed}", str(d)))
-    if bop and Path(bop).is_dir():
-        out.append((Path(bop).name, bop))
+    for r in real:
+        if not Path(r).is_dir():
+            raise SystemExit(f"{r}: real scene folder not found")
+        out.append((Path(r).name, r))
     return out
 
 
@@ -121,7 +125,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fit", action="store_true", help="fit and store the model (default seeds: the fit seeds)")
     ap.add_argument("--seeds", type=int, nargs="*", help="rg synth seeds (default: 201 202 203; --fit: 101-106)")
-    ap.add_argument("--bop", default=str(ROOT.parent / "shared/data/rgbd/ycbv_0002_bop"), help="a BOP scene ('': none)")
+    ap.add_argument("--real", nargs="*", default=[str(ROOT.parent / "shared/data/rgbd" / n) for n in REAL],
+                    help="real scenes with ground truth, any `rg eval` reads (none: synthetic only)")
     ap.add_argument("--preset", default="offline")
     ap.add_argument("--rows", help="reuse per-query records written by an earlier run (JSON) instead of evaluating")
     ap.add_argument("--out", default="bench_out")
@@ -136,7 +141,7 @@ def main() -> int:
         queries = json.loads(Path(args.rows).read_text())
     else:
         with tempfile.TemporaryDirectory() as tmp:
-            scenes = make_scenes(seeds, Path(tmp), None if args.fit else args.bop)
+            scenes = make_scenes(seeds, Path(tmp), [] if args.fit else args.real)
             queries = collect(scenes, list(SUPERVISIONS))
         (out / ("confidence_fit_queries.json" if args.fit else "confidence_queries.json")).write_text(json.dumps(queries))
     if args.fit:
@@ -162,9 +167,12 @@ def main() -> int:
     plots = []
     for sup in SUPERVISIONS:
         model = models[sup]
-        groups = {"synthetic": [q for q in queries if q["supervision"] == sup and q["scene"].startswith("synth")],
-                  "real (BOP)": [q for q in queries if q["supervision"] == sup and not q["scene"].startswith("synth")]}
-        groups["all"] = groups["synthetic"] + groups["real (BOP)"]
+        mine = [q for q in queries if q["supervision"] == sup]
+        groups = {"synthetic": [q for q in mine if q["scene"].startswith("synth")]}
+        real = [q for q in mine if not q["scene"].startswith("synth")]
+        for name in dict.fromkeys(q["scene"] for q in real):
+            groups[f"real: {name}"] = [q for q in real if q["scene"] == name]
+        groups["real"], groups["all"] = real, mine
         for name, qs in groups.items():
             if not qs:
                 continue

@@ -38,6 +38,20 @@ def test_masks_on_test_views(grounder, synth_scene):
     assert ev["explicit"]["miou_amodal"] >= 25, ev["explicit"]
 
 
+def test_scenes_without_amodal_masks_report_amodal_as_missing(grounder, synth_scene):
+    """YCB-Video ships visible masks only: amodal mIoU is nan there, never a made-up figure, and the
+    visible figures are those of the same views with amodal masks."""
+    import dataclasses
+
+    bare = dataclasses.replace(synth_scene, test=[dataclasses.replace(f, complete_mask_dir=None) for f in synth_scene.test])
+    assert not bare.test[0].has_amodal_masks()
+    full = evaluate_queries(grounder, synth_scene, implicit_per_object=0)["explicit"]
+    ev = evaluate_queries(grounder, bare, implicit_per_object=0)
+    assert np.isnan(ev["explicit"]["miou_amodal"]) and not np.isnan(full["miou_amodal"])
+    assert ev["explicit"]["miou_visible"] == full["miou_visible"]
+    assert all(np.isnan(o["miou_amodal"]) for o in ev["per_object"].values())
+
+
 def test_amodal_mask_covers_the_visible_mask(grounder, synth_scene):
     o = synth_scene.objects[0]
     r = grounder.ground(o.name, mode="explicit")

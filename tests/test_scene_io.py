@@ -189,3 +189,37 @@ def test_ycb_reader():
     assert f.rgb.shape == (480, 640, 3) and f.K[0, 0] == pytest.approx(1066.8, abs=0.5)
     assert 0.3 < float(np.median(f.depth[f.depth > 0])) < 3.0  # factor 10000 read as metres
     assert set(f.class_ids) <= set(np.unique(f.label).tolist()) and f.class_ids
+
+
+def test_ycb_sequence_reads_as_a_posed_scene_with_ground_truth(tmp_path):
+    """rotation_translation_matrix is world -> camera: the objects' meta.mat poses, taken to the
+    world with our camera poses, stay put across the views (they do not move in this sequence)."""
+    import scipy.io
+
+    root = need_rgbd("ycb_video_3")
+    s = read_scene(root)
+    assert s.kind == "ycb" and [f.index for f in s.test] == [1] and [f.index for f in s.train] == [5, 9]
+    assert [(o.id, o.name) for o in s.objects] == [(8, "gelatin box"), (14, "mug"), (21, "foam brick")]
+    assert all(q.implicit for q in s.queries)   # the description set covers them
+    centres = []
+    for f in s.frames:
+        poses = scipy.io.loadmat(str(root / f"{f.index:06d}-meta.mat"))["poses"]   # [3, 4, N] model -> camera
+        centres.append(np.stack([f.cam_to_world[:3, :3] @ poses[:, 3, k] + f.cam_to_world[:3, 3]
+                                 for k in range(poses.shape[2])]))
+    assert np.abs(np.stack(centres) - centres[0]).max() < 0.002
+    for o, c in zip(s.objects, centres[0]):   # each box holds its object's origin, and is object-sized
+        size = np.subtract(o.aabb_max, o.aabb_min)
+        assert np.all(np.asarray(o.aabb_min) - 0.01 < c) and np.all(c < np.asarray(o.aabb_max) + 0.01), o.name
+        assert np.all((0.02 < size) & (size < 0.15)), (o.name, size)
+    f = s.test[0]
+    assert not f.has_amodal_masks() and set(np.unique(f.load_visible_mask())) == {0, 8, 14, 21}
+    with pytest.raises(SceneError, match="no amodal masks"):
+        f.load_complete_mask(8)
+    # A meta.mat without camera poses is named, with what is missing.
+    bad = tmp_path / "seq"
+    shutil.copytree(root, bad)
+    meta = scipy.io.loadmat(str(bad / "000005-meta.mat"))
+    del meta["rotation_translation_matrix"]
+    scipy.io.savemat(str(bad / "000005-meta.mat"), {k: v for k, v in meta.items() if not k.startswith("__")})
+    with pytest.raises(SceneError, match="000005-meta.mat: missing rotation_translation_matrix"):
+        read_scene(bad)

@@ -29,6 +29,7 @@ from ..geometry.conventions import PoseError, check_rigid
 from .images import SceneError, read_mask
 from .queries import default_queries, description_categories
 from .scene import Frame, Intrinsics, Scene, SceneObject, _load_json
+from .ycb import ycb_class_name
 
 # BOP's YCB-V object ids 1..21 (the 21 YCB-Video classes, in YCB-Video's own order).
 YCBV_NAMES = ("002_master_chef_can", "003_cracker_box", "004_sugar_box", "005_tomato_soup_can",
@@ -95,6 +96,9 @@ class BopFrame(Frame):
             return np.zeros((self.intrinsics.height, self.intrinsics.width), bool)
         return self._mask(self.mask_visib_dir, g, "mask_visib")
 
+    def has_amodal_masks(self) -> bool:
+        return self.mask_dir is not None
+
     def load_complete_mask(self, object_id: int) -> np.ndarray:  # [H, W] bool amodal
         g = self.pose_of(object_id)
         if g is None:
@@ -115,12 +119,6 @@ class BopScene(Scene):
 def is_bop(root: str | Path) -> bool:
     root = Path(root)
     return (root / "scene_camera.json").is_file() and (root / "scene_gt.json").is_file()
-
-
-def ycb_name(raw: str) -> str:
-    """'006_mustard_bottle' -> 'mustard bottle'."""
-    parts = raw.strip().split("_")
-    return " ".join(parts[1:] if parts[0].isdigit() else parts)
 
 
 def _image_size(path: Path) -> tuple[int, int]:
@@ -226,9 +224,9 @@ def _names(root: Path, ids: list[int], opts: BopOptions) -> dict[int, str]:
     out = {}
     for o in ids:
         if o in raw:
-            out[o] = ycb_name(raw[o])
+            out[o] = ycb_class_name(raw[o])
         elif opts.fallback_names == "ycbv" and 1 <= o <= len(YCBV_NAMES):
-            out[o] = ycb_name(YCBV_NAMES[o - 1])
+            out[o] = ycb_class_name(YCBV_NAMES[o - 1])
         else:
             out[o] = f"object {o}"
     return out

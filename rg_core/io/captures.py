@@ -109,11 +109,12 @@ def read_capture(root: str | Path, test_every: int = 8, trajectory: str | Path |
 def read_scene(root: str | Path, test_every: int = 8, bag_options=None, bop_options=None) -> Scene:
     """Read any supported scene: ReasoningGD layout, a real capture folder, a BOP scene folder
     (scene_camera.json + scene_gt.json; `bop_options` a bop.BopOptions, else every `test_every`-th
-    image a test view) or a ROS 2 bag (.mcap, .db3 or a rosbag2 folder; `bag_options` is a
+    image a test view), a YCB-Video sequence folder (classes.txt + NNNNNN-meta.mat) or a ROS 2 bag (.mcap, .db3 or a rosbag2 folder; `bag_options` is a
     rosbag.BagOptions, default options when None)."""
     from .bop import BopOptions, is_bop, read_bop
     from .rosbag import is_bag, read_bag
     from .scene import read_reasoninggd
+    from .ycb import is_ycb, read_ycb_scene
 
     root = Path(root)
     if is_bag(root):
@@ -122,9 +123,11 @@ def read_scene(root: str | Path, test_every: int = 8, bag_options=None, bop_opti
         return read_bop(root, bop_options or BopOptions(test_every=test_every))
     if (root / "transforms_train.json").is_file():
         return read_reasoninggd(root)
+    if is_ycb(root):
+        return read_ycb_scene(root, test_every=test_every)
     if root.is_dir() and any(_FRAME_RE.match(p.name) for p in root.iterdir()):
         return read_capture(root, test_every=test_every)
     raise SceneError(
         f"{root}: not a scene folder or bag (expected transforms_train.json, frame-XXXXXX.color.png files, "
-        "scene_camera.json + scene_gt.json (BOP), a .mcap/.db3 file or a rosbag2 folder with metadata.yaml)"
+        "scene_camera.json + scene_gt.json (BOP), classes.txt + *-meta.mat (YCB-Video), a .mcap/.db3 file or a rosbag2 folder with metadata.yaml)"
     )

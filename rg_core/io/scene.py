@@ -87,6 +87,9 @@ class Frame:
         self._check_size(m, self.visible_mask_path)
         return m
 
+    def has_amodal_masks(self) -> bool:
+        return self.complete_mask_dir is not None
+
     def load_complete_mask(self, object_id: int) -> np.ndarray:  # [H, W] bool
         if self.complete_mask_dir is None:
             raise SceneError(f"frame {self.index}: has no amodal masks")
