@@ -227,6 +227,39 @@ def test_connected_to_prefers_the_piece_the_mask_supports():
         connected_to(pts, anchor, link, support[:-1])
 
 
+def test_connected_to_keeps_every_piece_the_mask_sees():
+    """ycb_video_3's mug: no depth at the rim split its front wall from its inside at the link
+    distance, and only the inside was kept (visible IoU 0.39). A second piece the reference mask
+    sees is kept too, unless the mask sees it less than it sees it outside (the table) or it is
+    small next to the kept one (a few background Gaussians behind a thin object's edge)."""
+    from rg_core.geometry.points import map_spacing
+    from rg_core.grounding.boxes import connected_to
+
+    rng = np.random.default_rng(2)
+    inside = rng.uniform(0, 0.04, (300, 3))                     # the mug's inside
+    front = rng.uniform(0, 0.04, (200, 3)) + [0, 0.06, 0]       # its front wall, 2 cm apart
+    table = rng.uniform(0, 0.04, (150, 3)) + [0, -0.06, 0]      # seen outside the mask
+    stray = rng.uniform(0, 0.01, (6, 3)) + [0, 0, 0.11]         # background behind an edge, in the mask
+    pts = np.concatenate([inside, front, table, stray])
+    link = 3 * map_spacing(pts)
+    assert link < 0.02
+    support = np.zeros(len(pts), bool)
+    against = np.zeros(len(pts), bool)
+    support[:500] = True
+    support[500:520] = True                                     # the table's edge bleeds into the mask
+    against[520:650] = True
+    support[-6:] = True
+    keep = connected_to(pts, None, link, support, against)
+    assert keep[:500].all() and not keep[500:].any()
+    # Without `against`, as before: the most supported piece alone.
+    only = connected_to(pts, None, link, support)
+    assert only[:300].all() and not only[300:].any()
+    # A second piece below `also_share` of the kept one's support is dropped.
+    assert not connected_to(pts, None, link, support, against, also_share=0.7)[300:500].any()
+    with pytest.raises(ValueError):
+        connected_to(pts, None, link, support, against[:-1])
+
+
 def test_relevancy_in_pca_space_matches_decompressing_first():
     from rg_core.grounding.relevancy import relevancy_pca
     from rg_core.perception.pca import PCA

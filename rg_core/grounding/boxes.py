@@ -15,7 +15,8 @@ def robust_inliers(points: np.ndarray, k: float = 3.0) -> np.ndarray:
 
 
 def connected_to(points: np.ndarray, anchor: np.ndarray | None, link: float,
-                 support: np.ndarray | None = None) -> np.ndarray:
+                 support: np.ndarray | None = None, against: np.ndarray | None = None,
+                 also_share: float = 0.25) -> np.ndarray:
     """bool [N]: the points [N, 3] joined to `anchor` [3] by chains of steps of at most `link` (m),
     starting from the point nearest the anchor; None: the largest such component. An object is one
     piece in space: members that only share its instance feature (the table under it, a look-alike
@@ -23,7 +24,12 @@ def connected_to(points: np.ndarray, anchor: np.ndarray | None, link: float,
     `support` (bool [N], e.g. seen inside the reference view's mask): when any point has it, the
     component with the most supported points is kept instead of the anchor's. One pixel can lie:
     a thin object's rim in the mask often carries the depth of the surface behind it (colour and
-    depth disagree at edges), and the anchor then falls on a few Gaussians of the background."""
+    depth disagree at edges), and the anchor then falls on a few Gaussians of the background.
+    `against` (bool [N], seen outside that mask): with support, every other piece with at least
+    `also_share` of the kept piece's supported points, and at least twice as many supported as
+    against, is kept too. A real sensor leaves gaps in one object (no depth at a mug's rim splits
+    its front wall from its inside) that no step of `link` bridges; the table under an object or a
+    neighbour is seen outside the mask."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
@@ -40,7 +46,16 @@ def connected_to(points: np.ndarray, anchor: np.ndarray | None, link: float,
     if sup is not None and sup.shape != (n,):
         raise ValueError(f"connected_to: support must be [N] = [{n}], got {list(np.shape(support))}")
     if sup is not None and sup.any():
-        keep = np.bincount(comp[sup], minlength=int(comp.max()) + 1).argmax()
+        counts = np.bincount(comp[sup], minlength=int(comp.max()) + 1)                 # [C]
+        keep = counts.argmax()
+        if against is not None:
+            ag = np.asarray(against, bool).reshape(-1)
+            if ag.shape != (n,):
+                raise ValueError(f"connected_to: against must be [N] = [{n}], got {list(np.shape(against))}")
+            out = np.bincount(comp[ag], minlength=len(counts))
+            pieces = (counts >= also_share * counts[keep]) & (counts >= 2 * out)
+            pieces[keep] = True
+            return pieces[comp]
     elif anchor is None:
         keep = np.bincount(comp).argmax()
     else:

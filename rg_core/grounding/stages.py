@@ -210,11 +210,12 @@ def objects(g, ref: Reference, pk: Peak, found: list[tuple[np.ndarray, float]], 
             if n == 0:
                 ids = np.union1d(ids, np.nonzero(voted)[0])
         if link > 0 and len(ids) > 1:
-            support = None
+            support = against = None
             if n == 0 and ref_view is not None:
-                support = mask_votes(means[ids], [ref_view], gs.scales.detach()[torch.from_numpy(ids)]
-                                     .max(1).values.numpy(), border_px=border).inside > 0
-            ids = ids[connected_to(means[ids], pk.anchor if n == 0 and pk.has_depth else None, link, support)]
+                rv = mask_votes(means[ids], [ref_view], gs.scales.detach()[torch.from_numpy(ids)]
+                                .max(1).values.numpy(), border_px=border)
+                support, against = rv.inside > 0, rv.outside > 0
+            ids = ids[connected_to(means[ids], pk.anchor if n == 0 and pk.has_depth else None, link, support, against)]
         ids = ids[robust_inliers(means[ids], g.gcfg.outlier_mads)]
         if not len(ids):
             continue
