@@ -139,6 +139,42 @@ def test_subset_renders_group_alone_and_ids_index_full_set():
         rasterize(*params, cam, subset=torch.zeros(3, dtype=torch.bool))
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_frustum_cull_keeps_every_gaussian_the_image_can_show(seed):
+    """A map far wider than the view (behind the camera, across the near plane, beside the image),
+    with huge, tiny and needle Gaussians, low opacity and NaN rows, seen by rotated cameras with an
+    off-centre principal point: every Gaussian project_gaussians gives a footprint survives the
+    cull, and rendering the survivors gives the same image, depth, alpha and ids as rendering all."""
+    from scipy.spatial.transform import Rotation
+
+    from rg_core.render import Camera, frustum_cull
+
+    g = torch.Generator().manual_seed(seed)
+    n = 6000
+    means, scales, quats, opac, feats = random_gaussians(n, 4, g, depth=0.0, spread=(6.0, 6.0, 6.0))
+    scales[:200] = 10.0 ** (torch.rand(200, 3, generator=g) * 9 - 6)       # 1 um .. 1 km
+    scales[200:300, :2] = 1e-5                                              # needles
+    opac[300:400] = torch.rand(100, generator=g) * 2 / 255                 # around ALPHA_MIN
+    means[400:410] = float("nan")
+    rng = np.random.default_rng(seed)
+    for _ in range(3):
+        w2c = torch.eye(4)
+        w2c[:3, :3] = torch.from_numpy(Rotation.random(random_state=rng).as_matrix()).float()
+        w2c[:3, 3] = torch.from_numpy(rng.normal(0, 1.0, 3)).float()
+        K = torch.tensor([[70.0, 0.0, 18.0], [0.0, 55.0, 31.0], [0.0, 0.0, 1.0]])   # off-centre, fx != fy
+        cam = Camera(K, w2c, 64, 48, 0.05, 50.0)
+        idx = frustum_cull(means, scales, opac, cam)
+        shown = torch.nonzero(project_gaussians(means, scales, quats, opac, cam).radii > 0).squeeze(1)
+        assert bool(torch.isin(shown, idx).all()), "a Gaussian with a footprint was culled"
+        assert len(idx) < 0.6 * n                                           # the cull removes something
+        full = rasterize(means, scales, quats, opac, feats, cam, return_ids=True)
+        cut = rasterize(means, scales, quats, opac, feats, cam, subset=idx, return_ids=True)
+        torch.testing.assert_close(cut.channels, full.channels)
+        torch.testing.assert_close(cut.depth, full.depth)
+        torch.testing.assert_close(cut.alpha, full.alpha)
+        assert torch.equal(cut.ids, full.ids)
+
+
 def test_projection_matches_gsplat_torch_reference():
     gs = pytest.importorskip("gsplat.cuda._torch_impl")
     from rg_core.render.projection import covariance_3d

@@ -18,7 +18,7 @@ import torch
 
 from ..config import FieldConfig
 from ..geometry.conventions import scale_intrinsics
-from ..render import rasterize
+from ..render import frustum_cull, rasterize
 from .converge import check, holdout_pixels
 from .losses import instance_loss, language_loss, language_targets, shares_group
 from .mappers import ScaleMLP, sparse_adam_step
@@ -327,11 +327,19 @@ class FeatureField:
     # ---------------------------------------------------------------------------- queries
 
     def _render(self, latents: torch.Tensor, K, c2w, w: int, h: int, return_ids: bool = False, colour: bool = True):
-        """Channels [h, w, 3 + D]: colour and latent in one call; the latent [h, w, D] alone without `colour`."""
+        """Channels [h, w, 3 + D]: colour and latent in one call; the latent [h, w, D] alone without `colour`.
+        Only the Gaussians that can touch the image are gathered (render.frustum_cull): the same image
+        and ids, without copying a room-sized map's latents for one camera."""
         g = self.mapper.gaussians
-        ch = torch.cat([g.colors.detach(), latents], 1) if colour else latents
-        return rasterize(g.means.detach(), g.scales.detach(), g.quats.detach(), g.opacities.detach(), ch,
-                         self.mapper.camera(K, c2w, w, h), return_ids=return_ids)
+        cam = self.mapper.camera(K, c2w, w, h)
+        means, scales, opac = g.means.detach(), g.scales.detach(), g.opacities.detach()
+        idx = frustum_cull(means, scales, opac, cam)                               # [M]
+        sub = (lambda t: t[idx]) if len(idx) < len(means) else (lambda t: t)
+        ch = torch.cat([sub(g.colors.detach()), sub(latents)], 1) if colour else sub(latents)
+        out = rasterize(sub(means), sub(scales), sub(g.quats.detach()), sub(opac), ch, cam, return_ids=return_ids)
+        if return_ids and out.ids is not None and len(idx) < len(means):
+            out.ids = torch.where(out.ids >= 0, idx[out.ids.clamp(min=0)], out.ids)
+        return out
 
     @torch.no_grad()
     def render(self, K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int) -> FieldRender:

@@ -52,6 +52,32 @@ def covariance_3d(scales: torch.Tensor, quats: torch.Tensor) -> torch.Tensor:
     return M @ M.transpose(1, 2)
 
 
+@torch.no_grad()
+def frustum_cull(means: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """Indices [M] of the Gaussians that can touch `camera`'s image: a conservative bound on
+    project_gaussians' footprint (between the clip planes, opacity >= ALPHA_MIN, the square of half
+    size 3.4 s_max f / z, times the Jacobian's largest stretch inside the clamped field of view, plus
+    the dilation, overlapping the image). Rendering only these gives the same image and ids as
+    rendering all: a room-sized map seen from one camera renders its visible part, not all of it.
+    means [N, 3], scales [N, 3], opacities [N]."""
+    R = camera.world_to_cam[:3, :3].to(means.dtype)
+    t = camera.world_to_cam[:3, 3].to(means.dtype)
+    pc = means @ R.T + t                                                     # [N, 3] camera frame
+    z = pc[:, 2]
+    fx, fy, cx, cy = (float(v) for v in (camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]))
+    W, H = camera.width, camera.height
+    lim_x = max(W - (cx + 0.5), cx + 0.5) / fx + 0.3 * 0.5 * W / fx          # project_gaussians' clamp
+    lim_y = max(H - (cy + 0.5), cy + 0.5) / fy + 0.3 * 0.5 * H / fy
+    stretch = max(fx, fy) * (1.0 + lim_x * lim_x + lim_y * lim_y) ** 0.5
+    keep = (z >= camera.near) & (z <= camera.far) & (opacities >= ALPHA_MIN)
+    zs = torch.where(keep, z, torch.ones_like(z))
+    reach = 3.4 * scales.abs().amax(1) * stretch / zs + 3.0 + 3.4 * EPS2D ** 0.5   # [N] px, >= the footprint
+    u = fx * pc[:, 0] / zs + cx
+    v = fy * pc[:, 1] / zs + cy
+    keep &= (u + reach > -1.0) & (u - reach < W) & (v + reach > -1.0) & (v - reach < H)
+    return torch.nonzero(keep).squeeze(1)
+
+
 def project_gaussians(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor,
                       opacities: torch.Tensor, camera: Camera, eps2d: float = EPS2D) -> Projected:
     """Project Gaussians into `camera`. means [N, 3], scales [N, 3], quats [N, 4], opacities [N]."""
