@@ -52,6 +52,25 @@ def test_scenes_without_amodal_masks_report_amodal_as_missing(grounder, synth_sc
     assert all(np.isnan(o["miou_amodal"]) for o in ev["per_object"].values())
 
 
+def test_a_name_two_objects_share_is_asked_once_and_scored_against_the_one_found(grounder, synth_scene):
+    """A room holds two remote controls: "remote control" is right for either. Asked once, scored
+    against the one the answer's box overlaps; asked of each, one of them scored 0 by construction."""
+    import dataclasses
+
+    from rg_core.io.scene import Query
+
+    a, b = synth_scene.objects[:2]
+    twin = dataclasses.replace(b, name=a.name)   # b now carries a's name (its pixels and box stay b's)
+    scene = dataclasses.replace(synth_scene, objects=[a, twin], queries=[Query(a.id, a.name, []), Query(b.id, a.name, [])])
+    ev = evaluate_queries(grounder, scene, implicit_per_object=0)
+    alone = evaluate_queries(grounder, dataclasses.replace(synth_scene, objects=[a], queries=[Query(a.id, a.name, [])]),
+                             implicit_per_object=0)
+    assert ev["queries_asked_of_several"] == 1 and alone["queries_asked_of_several"] == 0
+    assert ev["explicit"]["queries"] == 1
+    assert ev["explicit"]["pairs"] == alone["explicit"]["pairs"]
+    assert ev["explicit"]["miou_visible"] == alone["explicit"]["miou_visible"] >= 30
+
+
 def test_amodal_mask_covers_the_visible_mask(grounder, synth_scene):
     o = synth_scene.objects[0]
     r = grounder.ground(o.name, mode="explicit")

@@ -26,27 +26,31 @@ def evaluate_queries(grounder, scene, implicit_per_object: int = 1, min_visible_
     """Every explicit query and the first `implicit_per_object` implicit ones of queries.json, on
     every test view where the object is visible (>= min_visible_px pixels). Masks, boxes and
     localization are those of the answer's groups, an abstained answer's best guess too (the
-    figures stay comparable across thresholds); abstention shows in success_rate and "confidence"."""
+    figures stay comparable across thresholds); abstention shows in success_rate and "confidence".
+    A query asked of several objects (two objects named "remote control") is asked once and scored
+    against the one of them the answer's box overlaps most: either is a right answer to the name."""
     from tqdm import tqdm
 
     by_id = {o.id: o for o in scene.objects}
     views = scene.test if views is None else views
     cache = [(f, f.load_visible_mask()) for f in views]
-    jobs = []
+    jobs: dict[tuple[str, str], list[int]] = {}   # (kind, text) -> the objects it is asked of
     for q in scene.queries:
         if q.object_id in by_id:
-            jobs.append(("explicit", q.explicit, q.object_id))
-            jobs += [("implicit", t, q.object_id) for t in q.implicit[:implicit_per_object]]
+            jobs.setdefault(("explicit", q.explicit), []).append(q.object_id)
+            for t in q.implicit[:implicit_per_object]:
+                jobs.setdefault(("implicit", t), []).append(q.object_id)
     rows, abl = [], []
-    for kind, text, oid in tqdm(jobs, desc="eval", unit="query", disable=not progress, file=sys.stderr):
-        o = by_id[oid]
+    for (kind, text), oids in tqdm(list(jobs.items()), desc="eval", unit="query", disable=not progress, file=sys.stderr):
         t0 = time.perf_counter()
         res = grounder.ground(text, mode=kind)
         t_query = time.perf_counter() - t0
-        box = 0.0
+        o, box = by_id[oids[0]], 0.0
         if res.objects:   # an abstained answer is scored by its best guess: the figures stay comparable
             ob = res.objects[0]
-            box = box_iou_aabb(ob.aabb_min, ob.aabb_max, o.aabb_min, o.aabb_max)
+            box, o = max(((box_iou_aabb(ob.aabb_min, ob.aabb_max, by_id[i].aabb_min, by_id[i].aabb_max), by_id[i])
+                          for i in dict.fromkeys(oids)), key=lambda x: x[0])
+        oid = o.id
         right_name = res.target == o.name
         for f, vis_ids in cache:
             gt_vis = vis_ids == oid
@@ -63,6 +67,7 @@ def evaluate_queries(grounder, scene, implicit_per_object: int = 1, min_visible_
                 y, x = divmod(int(rel.reshape(-1).argmax()), W)
                 loc = _box2d_contains(gt_vis, x, y)
             rows.append({"kind": kind, "query": text, "object": o.name, "view": f.index, "success": res.success,
+                         "asked_of": len(oids),
                          "target": res.target, "confidence": float(res.confidence), "evidence": res.evidence,
                          "target_ok": right_name, "iou_visible": iou(visible, gt_vis),
                          "iou_amodal": None if gt_amodal is None else iou(amodal, gt_amodal), "localized": loc, "box_iou": box,
@@ -115,6 +120,7 @@ def summarise(rows: list[dict]) -> dict:
 
     out = {k: block([r for r in rows if r["kind"] == k]) for k in ("explicit", "implicit")}
     out["all"] = block(rows)
+    out["queries_asked_of_several"] = len({r["query"] for r in rows if r.get("asked_of", 1) > 1})
     per_obj: dict[str, float] = {}
     for r in rows:
         if r["kind"] == "explicit":
