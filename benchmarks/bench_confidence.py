@@ -1,6 +1,6 @@
 """Calibrated confidence and abstention (issue 26): fit the model on some scenes, report it on others.
 
-    python benchmarks/bench_confidence.py --fit [--seeds 101 102 103 104 105 106]       # writes the model
+    python benchmarks/bench_confidence.py --fit [--seeds 101 ... 112]       # writes the model
     python benchmarks/bench_confidence.py [--seeds 201 202 203] [--real DIR ...] [--json] [--record]
 
 Every scene (`rg synth`, 30 views 320x240, 7 objects, each seed; and the real scenes: by default
@@ -37,7 +37,7 @@ from rg_core.synth.generator import default_objects_dir, generate_scene  # noqa:
 from _common import add_output_flags, finish  # noqa: E402
 
 RUN = "import sys; from rg_core.cli import main; sys.exit(main(sys.argv[1:]))"
-FIT_SEEDS = (101, 102, 103, 104, 105, 106)
+FIT_SEEDS = tuple(range(101, 113))
 SUPERVISIONS = ("default", "oracle")   # one model each: their evidence lives on different scales
 REAL = ("ycbv_0002_bop", "ycb_video_3")   # held-out real scenes (../shared/data/rgbd): never fitted on
 MAX_WRONG = 0.08   # the threshold: the lowest at which the fit answers' wrong-returned share is at most this
@@ -124,7 +124,7 @@ def to_rows(report: dict) -> tuple[list[dict], str]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fit", action="store_true", help="fit and store the model (default seeds: the fit seeds)")
-    ap.add_argument("--seeds", type=int, nargs="*", help="rg synth seeds (default: 201 202 203; --fit: 101-106)")
+    ap.add_argument("--seeds", type=int, nargs="*", help="rg synth seeds (default: 201 202 203; --fit: 101-112)")
     ap.add_argument("--real", nargs="*", default=[str(ROOT.parent / "shared/data/rgbd" / n) for n in REAL],
                     help="real scenes with ground truth, any `rg eval` reads (none: synthetic only)")
     ap.add_argument("--preset", default="offline")
