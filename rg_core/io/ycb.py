@@ -2,7 +2,7 @@
 real photos with per-pixel class labels, object poses and camera poses.
 
 `read_ycb` gives the single views (2D mask and recognition checks); `read_ycb_scene` gives the same
-folder as a posed scene with ground truth, so `rg map`, `rg eval` and `rg report` measure on it:
+folder as a posed scene with ground truth, so `rg map` and `rg eval` measure on it:
 camera poses from each meta.mat's `rotation_translation_matrix` (world -> camera, metres), visible
 masks from the label images (object id = the class's 1-based index), object boxes from the labelled
 depth. YCB-Video ships no amodal masks, so amodal figures are reported as missing.
