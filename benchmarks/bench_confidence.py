@@ -145,7 +145,9 @@ def main() -> int:
             queries = collect(scenes, list(SUPERVISIONS))
         (out / ("confidence_fit_queries.json" if args.fit else "confidence_queries.json")).write_text(json.dumps(queries))
     if args.fit:
-        models = {sup: fit(queries, args.preset, sup, f"rg synth seeds {' '.join(map(str, seeds))}, {sup} supervision")
+        span = (f"{seeds[0]}-{seeds[-1]}" if list(seeds) == list(range(seeds[0], seeds[-1] + 1))
+                else " ".join(map(str, seeds)))
+        models = {sup: fit(queries, args.preset, sup, f"rg synth seeds {span}, {sup} supervision")
                   for sup in SUPERVISIONS}
         model_path(args.preset).write_text(json.dumps(
             {"preset": args.preset, "by_supervision": {k: m.to_json() for k, m in models.items()}}, indent=1) + "\n")
