@@ -334,10 +334,11 @@ class FeatureField:
         cam = self.mapper.camera(K, c2w, w, h)
         means, scales, opac = g.means.detach(), g.scales.detach(), g.opacities.detach()
         idx = frustum_cull(means, scales, opac, cam)                               # [M]
-        sub = (lambda t: t[idx]) if len(idx) < len(means) else (lambda t: t)
+        culled = len(idx) < len(means)
+        sub = (lambda t: t[idx]) if culled else (lambda t: t)
         ch = torch.cat([sub(g.colors.detach()), sub(latents)], 1) if colour else sub(latents)
         out = rasterize(sub(means), sub(scales), sub(g.quats.detach()), sub(opac), ch, cam, return_ids=return_ids)
-        if return_ids and out.ids is not None and len(idx) < len(means):
+        if culled and return_ids and out.ids is not None:
             out.ids = torch.where(out.ids >= 0, idx[out.ids.clamp(min=0)], out.ids)
         return out
 

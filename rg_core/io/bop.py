@@ -96,9 +96,6 @@ class BopFrame(Frame):
             return np.zeros((self.intrinsics.height, self.intrinsics.width), bool)
         return self._mask(self.mask_visib_dir, g, "mask_visib")
 
-    def has_amodal_masks(self) -> bool:
-        return self.mask_dir is not None
-
     def load_complete_mask(self, object_id: int) -> np.ndarray:  # [H, W] bool amodal
         g = self.pose_of(object_id)
         if g is None:

@@ -87,15 +87,10 @@ def read_ycb(root: str | Path) -> tuple[list[str], list[YCBFrame]]:
 
 @dataclass
 class YCBSceneFrame(Frame):
-    """A YCB-Video view: the label image is the visible-mask id image (ids = 1-based class index)."""
+    """A YCB-Video view: the label image is the visible-mask id image (ids = 1-based class index);
+    no amodal masks (complete_mask_dir stays None)."""
 
     class_ids: list[int] = field(default_factory=list)
-
-    def has_amodal_masks(self) -> bool:
-        return False
-
-    def load_complete_mask(self, object_id: int) -> np.ndarray:
-        raise SceneError(f"{self.image_path.parent}: YCB-Video frames have no amodal masks")
 
 
 def read_ycb_scene(root: str | Path, test_every: int = 8) -> Scene:

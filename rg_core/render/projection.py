@@ -52,6 +52,16 @@ def covariance_3d(scales: torch.Tensor, quats: torch.Tensor) -> torch.Tensor:
     return M @ M.transpose(1, 2)
 
 
+def _fov_limits(camera: Camera) -> tuple[float, float, float, float]:
+    """|x / z| and |y / z| where the Jacobian is evaluated (3DGS / gsplat: 1.3x the field of view):
+    (x right, x left, y down, y up)."""
+    fx, fy, cx, cy = (float(v) for v in (camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]))
+    W, H = camera.width, camera.height
+    tan_fovx, tan_fovy = 0.5 * W / fx, 0.5 * H / fy
+    return ((W - (cx + 0.5)) / fx + 0.3 * tan_fovx, (cx + 0.5) / fx + 0.3 * tan_fovx,
+            (H - (cy + 0.5)) / fy + 0.3 * tan_fovy, (cy + 0.5) / fy + 0.3 * tan_fovy)
+
+
 @torch.no_grad()
 def frustum_cull(means: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor, camera: Camera) -> torch.Tensor:
     """Indices [M] of the Gaussians that can touch `camera`'s image: a conservative bound on
@@ -66,8 +76,8 @@ def frustum_cull(means: torch.Tensor, scales: torch.Tensor, opacities: torch.Ten
     z = pc[:, 2]
     fx, fy, cx, cy = (float(v) for v in (camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]))
     W, H = camera.width, camera.height
-    lim_x = max(W - (cx + 0.5), cx + 0.5) / fx + 0.3 * 0.5 * W / fx          # project_gaussians' clamp
-    lim_y = max(H - (cy + 0.5), cy + 0.5) / fy + 0.3 * 0.5 * H / fy
+    xp, xn, yp, yn = _fov_limits(camera)                                    # project_gaussians' clamp
+    lim_x, lim_y = max(xp, xn), max(yp, yn)
     stretch = max(fx, fy) * (1.0 + lim_x * lim_x + lim_y * lim_y) ** 0.5
     keep = (z >= camera.near) & (z <= camera.far) & (opacities >= ALPHA_MIN)
     zs = torch.where(keep, z, torch.ones_like(z))
@@ -116,11 +126,7 @@ def project_gaussians(means: torch.Tensor, scales: torch.Tensor, quats: torch.Te
     # 3DGS / gsplat: the Jacobian is evaluated at a position clamped to 1.3x the field of view.
     # Without it, a Gaussian far outside the image (or grazing the near plane at a steep angle)
     # gets a huge, wrong screen footprint from the linearisation and covers the whole screen.
-    tan_fovx, tan_fovy = 0.5 * W / fx, 0.5 * H / fy
-    lim_x_pos = (W - (cx + 0.5)) / fx + 0.3 * tan_fovx
-    lim_x_neg = (cx + 0.5) / fx + 0.3 * tan_fovx
-    lim_y_pos = (H - (cy + 0.5)) / fy + 0.3 * tan_fovy
-    lim_y_neg = (cy + 0.5) / fy + 0.3 * tan_fovy
+    lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg = _fov_limits(camera)
     tx = zs * torch.clamp(x / zs, min=-lim_x_neg, max=lim_x_pos)
     ty = zs * torch.clamp(y / zs, min=-lim_y_neg, max=lim_y_pos)
     # 2D covariance = T T^T with T = J R_cam R_q S ([N, 2, 3]), written out row by row instead of
