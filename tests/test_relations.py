@@ -70,6 +70,16 @@ def test_colour_term_in_cielab_names_focal_colours_and_ignores_shading():
     assert colour_term(np.array([[200, 20, 30]] * 60 + [[250, 250, 250]] * 40, np.uint8)) == "red"
     assert colour_term(np.zeros((1, 3), np.uint8)) == "black"
     assert colour_term(np.full((1, 3), 255.0)) == "white"
+    # shading decides nothing on its own: an orange cup (LCh hue 47) 60 % in shade, whose shaded
+    # pixels alone read brown, is orange; a black-and-grey tool whose pixels split three ways
+    # between black, grey and white by how the light falls on it takes the median lightness
+    lit, shade = np.array([[215, 95, 50]] * 40, np.uint8), np.array([[120, 52, 28]] * 60, np.uint8)
+    assert colour_term(shade) == "brown" and colour_term(np.concatenate([lit, shade])) == "orange"
+    tool = np.array([[20, 20, 20]] * 35 + [[100, 100, 100]] * 30 + [[200, 200, 200]] * 25 + [[200, 120, 30]] * 10,
+                    np.uint8)
+    assert colour_term(tool) == "grey"
+    # a wooden spoon: brown lit or not
+    assert colour_term(np.array([[110, 70, 40]] * 50 + [[70, 45, 25]] * 50, np.uint8)) == "brown"
     for bad in (np.zeros((0, 3), np.uint8), np.zeros((3, 4), np.uint8), np.array([[np.nan, 0, 0]])):
         with pytest.raises(ValueError, match="colour_term"):
             colour_term(bad)

@@ -83,11 +83,12 @@ def build_graph(g, names: list[str]) -> list[SceneObject]:
     return objs
 
 
-def observed_pixels(mapper, points: np.ndarray, views: int = 4, tol: float = 0.02) -> np.ndarray:
+def observed_pixels(mapper, points: np.ndarray, tol: float = 0.02, max_pixels: int = 20000) -> np.ndarray:
     """The keyframe pixels (uint8 [M, 3]) where `points` [N, 3] are seen: projected into every
-    keyframe, kept where the keyframe's depth agrees within tol + 2 % (not occluded), from the
-    `views` keyframes that see most of them. An object's colour is what the camera saw of it; the
-    Gaussians' own colours are a fit that blends neighbours and the background."""
+    keyframe, kept where the keyframe's depth agrees within tol + 2 % (not occluded); from every
+    keyframe that sees them (an object's colour is what the camera saw of it from all sides; the
+    Gaussians' own colours are a fit that blends neighbours and the background), evenly thinned to
+    at most max_pixels."""
     from ..geometry.conventions import in_image, project
 
     if not len(points):
@@ -102,8 +103,8 @@ def observed_pixels(mapper, points: np.ndarray, views: int = 4, tol: float = 0.0
         vis = (d > 0) & (np.abs(d - z[ok]) <= tol + 0.02 * z[ok])
         if vis.any():
             seen.append(kf.rgb.numpy()[v[vis], u[vis]])
-    seen.sort(key=len, reverse=True)
-    px = np.concatenate(seen[:views]) if seen else np.zeros((0, 3), np.float32)
+    px = np.concatenate(seen) if seen else np.zeros((0, 3), np.float32)
+    px = px[:: max(1, -(-len(px) // max_pixels))]
     return (np.clip(px, 0, 1) * 255).round().astype(np.uint8)
 
 

@@ -3,7 +3,7 @@
 - `colour_histogram`: per-pixel word frequencies in OpenCV's HSV, for ConSE's text-space colour term
   (embed.ConSEEmbedder; the fitted confidence model was measured with it).
 - `colour_term`: the one word a person would give a whole object, in CIELAB's lightness, chroma and
-  hue (LCh, a perceptual space): the most frequent name among its pixels.
+  hue (LCh, a perceptual space): its most frequent hue (or achromatic), then lightness.
 """
 from __future__ import annotations
 
@@ -38,13 +38,15 @@ def colour_histogram(pixels: np.ndarray) -> np.ndarray:
 
 
 # LCh hue sectors (degrees, CIELAB D65) -> term; sRGB red sits near 40, orange 61, yellow 96, green 141,
-# blue 295 (navy 306), purple 319, pink 352.
-_HUE_SECTORS = ((50, "red"), (75, "orange"), (110, "yellow"), (200, "green"), (312, "blue"), (345, "purple"),
+# blue 295 (navy 306), purple 319, pink 352. Red / orange at 45: between the xkcd colour survey's
+# "red orange" (44) and "blood orange" (46); its "deep" and "bright orange" sit at 49-50.
+_HUE_SECTORS = ((45, "red"), (75, "orange"), (110, "yellow"), (200, "green"), (312, "blue"), (345, "purple"),
                 (360, "red"))
 _MIN_CHROMA = 12.0              # C* below: achromatic, by lightness:
 _WHITE_L, _BLACK_L = 60.0, 20.0
 _BROWN_L, _BROWN_L_DULL, _BROWN_C = 35.0, 45.0, 40.0   # warm hues darker than 35, or than 45 at C* < 40
 _PINK_L = 65.0                  # red and purple hues lighter than this
+_LIT = 75                       # percentile of a hue's pixels that stands for its lit side
 
 
 def lch(pixels: np.ndarray) -> np.ndarray:
@@ -57,36 +59,36 @@ def lch(pixels: np.ndarray) -> np.ndarray:
                      np.degrees(np.arctan2(lab[:, 2], lab[:, 1])) % 360.0], 1)
 
 
-def pixel_names(pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """RGB [N, 3] (0..255) -> (basic colour term of each pixel [N] str, its L* [N]): the hue
-    sector in CIELAB LCh; brown for dark or dull warm hues, pink for light red and purple; below
-    C* 12 white / grey / black by L*."""
-    L, C, h = lch(np.clip(pixels, 0, 255)).T
-    sector = np.minimum(np.searchsorted([u for u, _ in _HUE_SECTORS], h, side="right"), len(_HUE_SECTORS) - 1)
-    names = np.array([t for _, t in _HUE_SECTORS])[sector]
-    warm = np.isin(names, ("red", "orange", "yellow"))
-    names = np.where(warm & ((L < _BROWN_L) | ((L < _BROWN_L_DULL) & (C < _BROWN_C))), "brown", names)
-    names = np.where(np.isin(names, ("red", "purple")) & (L > _PINK_L), "pink", names)
-    names = np.where(C < _MIN_CHROMA, np.where(L >= _WHITE_L, "white", np.where(L < _BLACK_L, "black", "grey")), names)
-    return names, L
+def _grey_term(L: float) -> str:
+    return "white" if L >= _WHITE_L else "black" if L < _BLACK_L else "grey"
 
 
 def colour_term(pixels: np.ndarray) -> str:
     """RGB [N, 3] (0..255) of one object -> its basic colour term, "light"/"dark" before a chromatic one.
 
-    Each pixel is named in CIELAB LCh (hue sector; brown and pink by lightness and chroma; below C*
-    12 white / grey / black by L*) and the object takes the most frequent name: a minority of
-    background pixels at its rim, or of highlights, does not change it. Light / dark: the median
-    L* of the pixels of that name above 75 / below 30. White starts at L* 60, so a white surface
-    in the shade is still white."""
+    Each pixel is a hue sector of CIELAB LCh, or achromatic below C* 12; the object takes the most
+    frequent of these, so a minority of background pixels at its rim, or of highlights, does not
+    change it. Shading moves a surface's pixels across lightness lines but not across hues, so
+    lightness decides only after that: achromatic -> white / grey / black by the median L*; a warm
+    hue is brown when its lit side (the 75th percentile of L* and C*) is dark or dull; red and purple
+    are pink when their median L* is above 65. Light / dark: that median above 75 / below 30."""
     if not isinstance(pixels, np.ndarray) or pixels.ndim != 2 or pixels.shape[1] != 3 or not len(pixels):
         raise ValueError(f"colour_term: expected RGB pixels [N>0, 3], got {getattr(pixels, 'shape', type(pixels))}")
     if not np.isfinite(pixels).all():
         raise ValueError("colour_term: pixels hold NaN or inf; expected finite 0..255 RGB")
-    names, L = pixel_names(pixels)
+    L, C, h = lch(np.clip(pixels, 0, 255)).T
+    sector = np.minimum(np.searchsorted([u for u, _ in _HUE_SECTORS], h, side="right"), len(_HUE_SECTORS) - 1)
+    names = np.where(C < _MIN_CHROMA, "achromatic", np.array([t for _, t in _HUE_SECTORS])[sector])
     terms, counts = np.unique(names, return_counts=True)
     term = str(terms[np.argmax(counts)])
-    if term not in ("red", "orange", "yellow", "green", "blue", "purple"):
-        return term
-    light = float(np.median(L[names == term]))
-    return f"light {term}" if light > 75 and term != "yellow" else f"dark {term}" if light < 30 else term
+    sel = names == term
+    median = float(np.median(L[sel]))
+    if term == "achromatic":
+        return _grey_term(median)
+    if term in ("red", "orange", "yellow"):
+        lit_l, lit_c = np.percentile(L[sel], _LIT), np.percentile(C[sel], _LIT)
+        if lit_l < _BROWN_L or (lit_l < _BROWN_L_DULL and lit_c < _BROWN_C):
+            return "brown"
+    if term in ("red", "purple") and median > _PINK_L:
+        return "pink"
+    return f"light {term}" if median > 75 and term != "yellow" else f"dark {term}" if median < 30 else term
