@@ -117,8 +117,10 @@ class MapConfig:
     fell by less than this fraction of the window before's (iters_per_keyframe is then the ceiling)."""
     converge_window: Annotated[int, Interval(ge=1)] = 4
     """Iterations per window of that test; at least two windows run."""
-    final_iters: int = 250
-    """Iterations over all keyframes after the last frame (`rg map`; a node refines when idle): the ceiling."""
+    final_iters: int = 1000
+    """Iterations over all keyframes after the last frame (`rg map`; a node refines when idle): the
+    ceiling; refine_tol ends it first. At 250 a room of 80 keyframes was cut off after three passes
+    (close synthetic room, seed 502: explicit mIoU 75.7 at 250, 80.0 at 1000)."""
     refine_tol: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.003
     """The final refinement stops once a pass over all keyframes lowered the mean loss by less than
     this share against the pass before (0: all final_iters)."""
