@@ -1,5 +1,7 @@
 """Relational queries over the scene graph: the rule parser, and answers on the session scene with
 oracle supervision checked against the ground-truth object centres."""
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -106,17 +108,10 @@ def test_an_objects_colour_comes_from_every_keyframe_that_sees_it(grounder, synt
     m = grounder.mapper
     o = next(o for o in grounder.scene_graph() if o.name in _centres(synth_scene))
     pts = m.gaussians.means.detach().numpy()[o.obj.gaussian_ids]
-    per_kf = [len(observed_pixels(_OneKeyframe(m, kf), pts)) for kf in m.keyframes]
+    per_kf = [len(observed_pixels(SimpleNamespace(keyframes=[kf]), pts)) for kf in m.keyframes]   # one at a time
     assert sum(n > 0 for n in per_kf) > 4, per_kf            # seen from more sides than the old four
     assert len(observed_pixels(m, pts)) == sum(per_kf)
     assert len(observed_pixels(m, pts, max_pixels=50)) <= 50 and len(observed_pixels(m, pts[:0])) == 0
-
-
-class _OneKeyframe:
-    """A mapper's view of one of its keyframes (observed_pixels reads only .keyframes)."""
-
-    def __init__(self, mapper, kf):
-        self.keyframes = [kf]
 
 
 def test_relations_match_the_ground_truth(grounder, synth_scene):
