@@ -8,8 +8,9 @@ YCB-Video 0002 in BOP layout and the YCB-Video 0000 frames of ../shared/data/rgb
 `rg eval --implicit 3` with default and oracle supervision in fresh processes; each answered query
 gives its evidence (rg_core/grounding/confidence.py FEATURES) and whether it is right (target right
 and mean visible IoU >= 0.5). --fit fits a logistic regression on them (standardised features,
-scikit-learn, C=1) and picks the abstention threshold from their risk-coverage curve: the lowest one at
-which wrong answers returned as success are at most 8 % of all answers. It writes rg_core/perception/data/confidence_offline.json.
+scikit-learn, its L2 strength chosen by leave-one-scene-out log-loss) and picks the abstention
+threshold from their risk-coverage curve: the lowest one at which wrong answers returned as success
+are at most 8 % of all answers. It writes rg_core/perception/data/confidence_offline.json.
 Without --fit the stored model is reported on the scenes given (never the fit seeds): AUROC, ECE,
 wrong answers returned as success (share of all answers), right answers returned, abstained right
 explicit answers with oracle supervision, and the seconds a query spends on its confidence.
@@ -32,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 from rg_core.config import SynthConfig  # noqa: E402
 from rg_core.eval.grounding import calibration  # noqa: E402
 from rg_core.report.plots import calibration_png  # noqa: E402
-from rg_core.grounding.confidence import FEATURES, ConfidenceModel, load_model, model_path  # noqa: E402
+from rg_core.grounding.confidence import CLIP, FEATURES, ConfidenceModel, load_model, model_path  # noqa: E402
 from rg_core.synth.generator import default_objects_dir, generate_scene  # noqa: E402
 from _common import add_output_flags, finish  # noqa: E402
 
@@ -83,25 +84,53 @@ def make_scenes(seeds, tmp: Path, real: list[str]) -> list[tuple[str, str]]:
     return out
 
 
-def fit(queries: list[dict], preset: str, supervision: str, fitted_on: str) -> ConfidenceModel:
-    """A logistic model on the answered queries of maps with `supervision`."""
+C_GRID = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0)   # inverse L2 strengths tried; leave-one-scene-out picks one
+
+
+def _logistic(X: np.ndarray, y: np.ndarray, C: float):
+    """-> (mean, std, fitted LogisticRegression) on features X [Q, F] with nan as the mean."""
     from sklearn.linear_model import LogisticRegression
 
-    qs = [q for q in queries if q["answered"] and q["supervision"] == supervision]
-    X = np.array([[q["evidence"].get(k, np.nan) for k in FEATURES] for q in qs], np.float64)
-    y = np.array([q["right"] for q in qs], bool)
     mean = np.nanmean(X, 0)
     X = np.where(np.isfinite(X), X, mean)
     std = np.maximum(X.std(0), 1e-6)
-    lr = LogisticRegression(C=1.0, max_iter=1000).fit((X - mean) / std, y)
-    m = ConfidenceModel(preset, supervision, mean, std, lr.coef_[0], float(lr.intercept_[0]), 0.5, fitted_on)
+    return mean, std, LogisticRegression(C=C, max_iter=1000).fit((X - mean) / std, y)
+
+
+def choose_c(X: np.ndarray, y: np.ndarray, scenes: np.ndarray) -> tuple[float, dict]:
+    """The regularisation whose models, each fitted without one scene, predict that scene's answers
+    best (pooled log-loss, the probabilities clipped as ConfidenceModel clips its inputs)."""
+    loss = {}
+    for C in C_GRID:
+        p = np.zeros(len(y))
+        for s in np.unique(scenes):
+            out = scenes == s
+            mean, std, lr = _logistic(X[~out], y[~out], C)
+            z = np.clip((np.where(np.isfinite(X[out]), X[out], mean) - mean) / std, -CLIP, CLIP)
+            p[out] = 1.0 / (1.0 + np.exp(-(lr.intercept_[0] + z @ lr.coef_[0])))
+        p = np.clip(p, 1e-6, 1 - 1e-6)
+        loss[C] = round(float(-np.mean(y * np.log(p) + (~y) * np.log(1 - p))), 4)
+    return min(loss, key=loss.get), loss
+
+
+def fit(queries: list[dict], preset: str, supervision: str, fitted_on: str) -> ConfidenceModel:
+    """A logistic model on the answered queries of maps with `supervision`, its L2 strength chosen
+    by leave-one-scene-out log-loss (choose_c)."""
+    qs = [q for q in queries if q["answered"] and q["supervision"] == supervision]
+    X = np.array([[q["evidence"].get(k, np.nan) for k in FEATURES] for q in qs], np.float64)
+    y = np.array([q["right"] for q in qs], bool)
+    C, losses = choose_c(X, y, np.array([q["scene"] for q in qs]))
+    mean, std, lr = _logistic(X, y, C)
+    m = ConfidenceModel(preset, supervision, mean, std, lr.coef_[0], float(lr.intercept_[0]), 0.5,
+                        f"{fitted_on}, C={C:g}")
     p = np.array([m.probability(q["evidence"]) for q in qs])
     m.threshold = next((t for t in np.round(np.arange(0.0, 1.0, 0.01), 2)
                         if float(((p >= t) & ~y).mean()) <= MAX_WRONG), 0.99)
     for q, pq in zip(qs, p):
         q["confidence"], q["success"] = float(pq), bool(pq >= m.threshold)
     c = calibration(qs)["all"]
-    m.metrics = {k: c[k] for k in ("answers", "right", "auroc", "ece", "wrong_success_share", "right_returned_share")}
+    m.metrics = {**{k: c[k] for k in ("answers", "right", "auroc", "ece", "wrong_success_share", "right_returned_share")},
+                 "C": C, "loso_log_loss": {f"{k:g}": v for k, v in losses.items()}}
     return m
 
 
