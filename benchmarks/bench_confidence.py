@@ -31,7 +31,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from rg_core.config import SynthConfig  # noqa: E402
-from rg_core.eval.grounding import calibration  # noqa: E402
+from rg_core.eval.grounding import auroc, calibration  # noqa: E402
 from rg_core.report.plots import calibration_png  # noqa: E402
 from rg_core.grounding.confidence import CLIP, FEATURES, ConfidenceModel, load_model, model_path  # noqa: E402
 from rg_core.synth.generator import default_objects_dir, generate_scene  # noqa: E402
@@ -134,11 +134,30 @@ def fit(queries: list[dict], preset: str, supervision: str, fitted_on: str) -> C
     return m
 
 
+def auroc_interval(qs: list[dict], n: int = 1000, seed: int = 0) -> list[float]:
+    """95 % bootstrap interval of the AUROC, resampling objects (a scene's object with all its
+    queries: an object's explicit and implicit answers share their map evidence, so they are not
+    independent draws)."""
+    by: dict[tuple, list[dict]] = {}
+    for q in qs:
+        by.setdefault((q["scene"], q["object"]), []).append(q)
+    groups = list(by.values())
+    rng = np.random.default_rng(seed)
+    vals = []
+    for _ in range(n):
+        s = [q for i in rng.integers(0, len(groups), len(groups)) for q in groups[i]]
+        y = np.array([q["right"] for q in s], bool)
+        if y.any() and not y.all():
+            vals.append(auroc(np.array([q["confidence"] for q in s]), y))
+    return [round(float(np.percentile(vals, 2.5)), 3), round(float(np.percentile(vals, 97.5)), 3)] if vals else []
+
+
 def to_rows(report: dict) -> tuple[list[dict], str]:
     rows = []
     for r in report["blocks"]:
         rows.append({"scenes": r["scenes"], "supervision": r["supervision"], "answers": r["answers"],
-                     "right": r["right"], "auroc": r["auroc"], "ece": r["ece"],
+                     "right": r["right"], "auroc": r["auroc"],
+                     "auroc_95ci": "-".join(f"{v:.2f}" for v in r["auroc_95ci"]), "ece": r["ece"],
                      "wrong_success_pct": round(100 * r["wrong_success_share"], 1),
                      "right_returned_pct": round(100 * r["right_returned_share"], 1),
                      "right_explicit_abstained": r["right_explicit_abstained"]})
@@ -146,7 +165,7 @@ def to_rows(report: dict) -> tuple[list[dict], str]:
     fitted = "; ".join(f"{m['fitted_on']} (threshold {m['threshold']:.2f})" for m in ms.values())
     return rows, (f"one model per supervision, fitted on {fitted}; answers = queries of "
                   f"rg eval --implicit 3 (explicit + 3 implicit per object); right = target right and mean visible "
-                  f"IoU >= 0.5; unanswered queries count as abstained; confidence adds "
+                  f"IoU >= 0.5; unanswered queries count as abstained; auroc_95ci: bootstrap over objects; confidence adds "
                   f"{1000 * report['seconds_confidence_median']:.1f} ms per query (median)")
 
 
@@ -209,7 +228,7 @@ def main() -> int:
                 continue
             c = calibration(qs)["all"]
             right_exp = [q for q in qs if q["right"] and q["kind"] == "explicit"]
-            report["blocks"].append({"scenes": name, "supervision": sup, **c,
+            report["blocks"].append({"scenes": name, "supervision": sup, **c, "auroc_95ci": auroc_interval(qs),
                                      "right_explicit_abstained": f"{sum(not q['success'] for q in right_exp)}/{len(right_exp)}"})
             print(f"{name} {sup}: {c}", file=sys.stderr)
         png = out / f"confidence_{sup}.png"
