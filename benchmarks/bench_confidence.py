@@ -1,7 +1,7 @@
 """Calibrated confidence and abstention (issue 26): fit the model on some scenes, report it on others.
 
     python benchmarks/bench_confidence.py --fit [--seeds 101 ... 112]       # writes the model
-    python benchmarks/bench_confidence.py [--seeds 201 202 203] [--real DIR ...] [--json] [--record]
+    python benchmarks/bench_confidence.py [--seeds 201 ... 210] [--real DIR ...] [--json] [--record]
 
 Every scene (`rg synth`, 30 views 320x240, 7 objects, each seed; and the real scenes: by default
 YCB-Video 0002 in BOP layout and the YCB-Video 0000 frames of ../shared/data/rgbd) is evaluated by
@@ -39,6 +39,7 @@ from _common import add_output_flags, finish  # noqa: E402
 
 RUN = "import sys; from rg_core.cli import main; sys.exit(main(sys.argv[1:]))"
 FIT_SEEDS = tuple(range(101, 113))
+HELD_OUT_SEEDS = tuple(range(201, 211))
 SUPERVISIONS = ("default", "oracle")   # one model each: their evidence lives on different scales
 REAL = ("ycbv_0002_bop", "ycb_video_3")   # held-out real scenes (../shared/data/rgbd): never fitted on
 MAX_WRONG = 0.08   # the threshold: the lowest at which the fit answers' wrong-returned share is at most this
@@ -172,7 +173,7 @@ def to_rows(report: dict) -> tuple[list[dict], str]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fit", action="store_true", help="fit and store the model (default seeds: the fit seeds)")
-    ap.add_argument("--seeds", type=int, nargs="*", help="rg synth seeds (default: 201 202 203; --fit: 101-112)")
+    ap.add_argument("--seeds", type=int, nargs="*", help="rg synth seeds (default: 201-210; --fit: 101-112)")
     ap.add_argument("--real", nargs="*", default=[str(ROOT.parent / "shared/data/rgbd" / n) for n in REAL],
                     help="real scenes with ground truth, any `rg eval` reads (none: synthetic only)")
     ap.add_argument("--preset", default="offline")
@@ -180,7 +181,7 @@ def main() -> int:
     ap.add_argument("--out", default="bench_out")
     add_output_flags(ap)
     args = ap.parse_args()
-    seeds = args.seeds if args.seeds is not None else (list(FIT_SEEDS) if args.fit else [201, 202, 203])
+    seeds = args.seeds if args.seeds is not None else (list(FIT_SEEDS) if args.fit else list(HELD_OUT_SEEDS))
     if not args.fit and set(seeds) & set(FIT_SEEDS):
         raise SystemExit(f"seeds {sorted(set(seeds) & set(FIT_SEEDS))} are fit seeds: report on others")
     out = Path(args.out)
