@@ -138,3 +138,39 @@ def test_eval_reports_confidence_per_query(grounder, synth_scene):
         assert q["right"] == (q["target"] == q["object"] and q["miou_visible"] >= 50.0)
     c = ev["confidence"]
     assert c["all"]["answers"] == len(qs) and len(c["risk_coverage"]["coverage"]) == len(qs)
+
+
+def _bench_confidence():
+    import importlib
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    return importlib.import_module("bench_confidence")
+
+
+def test_regularisation_is_chosen_out_of_scene():
+    """Pure-noise features: the out-of-scene loss is lowest for the strongest L2 (the base rate);
+    one clean feature: a weaker one wins. The chosen strength is the grid's lowest loss."""
+    bc = _bench_confidence()
+    rng = np.random.default_rng(0)
+    scenes = np.repeat(np.arange(6), 40)
+    y = rng.random(len(scenes)) < 0.3
+    noise = rng.normal(size=(len(scenes), 5))
+    c, loss = bc.choose_c(noise, y, scenes)
+    assert c == min(bc.C_GRID) and loss[c] == min(loss.values()), loss
+    signal = np.column_stack([np.where(y, 1.0, -1.0) + 0.3 * rng.normal(size=len(y)), noise])
+    c, loss = bc.choose_c(signal, y, scenes)
+    assert c > min(bc.C_GRID) and loss[c] == min(loss.values()) and loss[c] < 0.3, loss
+
+
+def test_auroc_interval_resamples_objects():
+    bc = _bench_confidence()
+    sep = [{"scene": "s", "object": f"o{i}", "right": i % 2 == 0, "confidence": 0.9 if i % 2 == 0 else 0.1}
+           for i in range(10)]
+    assert bc.auroc_interval(sep) == [1.0, 1.0]
+    rng = np.random.default_rng(1)
+    mixed = [{"scene": "s", "object": f"o{i}", "right": bool(rng.random() < 0.5), "confidence": float(rng.random())}
+             for i in range(40)]
+    lo, hi = bc.auroc_interval(mixed)
+    assert 0.0 <= lo < auroc(np.array([q["confidence"] for q in mixed]), np.array([q["right"] for q in mixed])) < hi <= 1.0
