@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 from rg_core.config import SynthConfig  # noqa: E402
 from rg_core.eval.grounding import auroc, calibration  # noqa: E402
 from rg_core.report.plots import calibration_png  # noqa: E402
-from rg_core.grounding.confidence import CLIP, FEATURES, ConfidenceModel, load_model, model_path  # noqa: E402
+from rg_core.grounding.confidence import FEATURES, ConfidenceModel, load_model, model_path  # noqa: E402
 from rg_core.synth.generator import default_objects_dir, generate_scene  # noqa: E402
 from _common import add_output_flags, finish  # noqa: E402
 
@@ -100,15 +100,14 @@ def _logistic(X: np.ndarray, y: np.ndarray, C: float):
 
 def choose_c(X: np.ndarray, y: np.ndarray, scenes: np.ndarray) -> tuple[float, dict]:
     """The regularisation whose models, each fitted without one scene, predict that scene's answers
-    best (pooled log-loss, the probabilities clipped as ConfidenceModel clips its inputs)."""
+    best (pooled log-loss of ConfidenceModel.probabilities)."""
     loss = {}
     for C in C_GRID:
         p = np.zeros(len(y))
         for s in np.unique(scenes):
             out = scenes == s
             mean, std, lr = _logistic(X[~out], y[~out], C)
-            z = np.clip((np.where(np.isfinite(X[out]), X[out], mean) - mean) / std, -CLIP, CLIP)
-            p[out] = 1.0 / (1.0 + np.exp(-(lr.intercept_[0] + z @ lr.coef_[0])))
+            p[out] = ConfidenceModel("", "", mean, std, lr.coef_[0], float(lr.intercept_[0]), 0.5).probabilities(X[out])
         p = np.clip(p, 1e-6, 1 - 1e-6)
         loss[C] = round(float(-np.mean(y * np.log(p) + (~y) * np.log(1 - p))), 4)
     return min(loss, key=loss.get), loss

@@ -60,14 +60,19 @@ class ConfidenceModel:
     metrics: dict = field(default_factory=dict)
 
     def _z(self, ev: dict[str, float]) -> np.ndarray:
+        return self.standardise(np.array([ev.get(k, math.nan) for k in FEATURES], np.float64))
+
+    def standardise(self, x: np.ndarray) -> np.ndarray:  # [..., F] -> [..., F]
         """Standardised features, a missing one as the fit's mean, each clipped to +-CLIP spreads:
         a map unlike the fit scenes must not extrapolate the linear model into certainty."""
-        x = np.array([ev.get(k, math.nan) for k in FEATURES], np.float64)
         x = np.where(np.isfinite(x), x, self.mean)
         return np.clip((x - self.mean) / self.std, -CLIP, CLIP)
 
+    def probabilities(self, x: np.ndarray) -> np.ndarray:  # features [..., F] in FEATURES order -> [...]
+        return 1.0 / (1.0 + np.exp(-np.clip(self.intercept + self.standardise(x) @ self.coef, -50, 50)))
+
     def probability(self, ev: dict[str, float]) -> float:
-        return float(1.0 / (1.0 + math.exp(-float(np.clip(self.intercept + self.coef @ self._z(ev), -50, 50)))))
+        return float(self.probabilities(np.array([ev.get(k, math.nan) for k in FEATURES], np.float64)))
 
     def weakest(self, ev: dict[str, float], n: int = 2) -> list[str]:
         """The features that pull the probability down most: those the model reads "more is better"
