@@ -123,7 +123,7 @@ def fit(queries: list[dict], preset: str, supervision: str, fitted_on: str) -> C
     mean, std, lr = _logistic(X, y, C)
     m = ConfidenceModel(preset, supervision, mean, std, lr.coef_[0], float(lr.intercept_[0]), 0.5,
                         f"{fitted_on}, C={C:g}")
-    p = np.array([m.probability(q["evidence"]) for q in qs])
+    p = m.probabilities(X)
     m.threshold = next((t for t in np.round(np.arange(0.0, 1.0, 0.01), 2)
                         if float(((p >= t) & ~y).mean()) <= MAX_WRONG), 0.99)
     for q, pq in zip(qs, p):
