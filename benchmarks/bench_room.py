@@ -6,7 +6,8 @@
 - Synthetic room: `rg synth --layout room` (4 tables 3 m apart, the objects shared among them, a camera
   walk from table to table at head height, 320x240), the same room walked close to the tables
   (`synth.room_radius` 0.45-0.7 m: objects as large in the image as on the table top, whose ring is
-  0.38-0.62 m), and the same seed as one table-top scene
+  0.38-0.62 m), the room mapped with `map.seed_spacing` (far surfaces seeded at half the stride),
+  and the same seed as one table-top scene
   (`rg synth`, 7 objects, 100 views) for the reference figure. Each: `rg map` (Gaussians, keyframes,
   seconds, peak RSS, test PSNR) and `rg eval --map` of that map with oracle supervision (explicit /
   implicit visible mIoU; first_answer_s: supervision and field training on the built map). Target: the room's explicit mIoU within 5 points of the table top's.
@@ -42,13 +43,14 @@ def rg(*args: str, timeout: float = 7200) -> dict:
     return d
 
 
-def scene_rows(name: str, scene: Path, work: Path, oracle: bool) -> dict:
-    m = rg("map", str(scene), "--out", str(work / f"{name}.rgmap"))
+def scene_rows(name: str, scene: Path, work: Path, oracle: bool, config: Path | None = None) -> dict:
+    cfg = ("--config", str(config)) if config else ()
+    m = rg(*cfg, "map", str(scene), "--out", str(work / f"{name}.rgmap"))
     row = {"scene": name, "frames": m["train_frames"], "keyframes": m["keyframes"], "gaussians": m["gaussians"],
            "map_s": m["seconds_total"], "peak_rss_mb": m["peak_rss_mb"], "test_psnr_db": m["test"]["psnr"],
            "depth_err_median_mm": round(1000 * m["test"]["depth_abs_error_median_m"], 1)}
     if oracle:
-        e = rg("eval", str(scene), "--map", str(work / f"{name}.rgmap"), "--supervision", "oracle")
+        e = rg(*cfg, "eval", str(scene), "--map", str(work / f"{name}.rgmap"), "--supervision", "oracle")
         ev = e["eval"]
         row.update(explicit_miou_visible=ev["explicit"]["miou_visible"], implicit_miou_visible=ev["implicit"]["miou_visible"],
                    explicit_target_pct=ev["explicit"]["target_accuracy"], first_answer_s=e["seconds_build"],
@@ -65,7 +67,8 @@ def to_rows(report: dict) -> tuple[list[dict], str]:
     lo, hi = report.get("close_radius", (0.45, 0.7))
     return rows, (f"rg synth seed {report['seed']}: {report['objects']} objects on {report['tables']} tables 3 m apart, "
                   f"{report['views']} views 320x240, walked 0.9-1.3 m from each table (room) and {lo:g}-{hi:g} m "
-                  f"(close; the table top's ring: 0.38-0.62 m); table top 7 objects, {report['table_views']} views; oracle. "
+                  f"(close; the table top's ring: 0.38-0.62 m); seed spacing: the room mapped with map.seed_spacing "
+                  f"{report.get('seed_spacing', 0.015):g} m; table top 7 objects, {report['table_views']} views; oracle. "
                   "Explicit mIoU below the table top's: " + ", ".join(f"{k.replace('synthetic ', '')} {v:.1f}"
                                                                      for k, v in gap.items())
                   + " points (target <= 5). redkitchen_100: map only.")
@@ -103,6 +106,8 @@ def main() -> int:
     ap.add_argument("--table-views", type=int, default=100, help="views of the table-top reference scene")
     ap.add_argument("--close-radius", type=float, nargs=2, default=(0.45, 0.7),
                     help="the second room's walk: distance from each table's centre (m)")
+    ap.add_argument("--seed-spacing", type=float, default=0.015,
+                    help="map.seed_spacing (m) of the room's third row: far surfaces seeded at half the stride")
     ap.add_argument("--kitchen", default=str(ROOT.parent / "shared" / "data" / "rgbd" / "redkitchen_100"))
     ap.add_argument("--out", default="bench_out")
     add_output_flags(ap)
@@ -120,10 +125,15 @@ def main() -> int:
         rows.append(scene_rows("table top", work / "table", work, True))
         rows.append(scene_rows("synthetic room", work / "room", work, True))
         rows.append(scene_rows("synthetic room, close", work / "room_close", work, True))
+        spacing = work / "spacing.yaml"
+        spacing.write_text(f"map:\n  seed_spacing: {args.seed_spacing}\n")
+        rows.append(scene_rows("synthetic room, seed spacing", work / "room", work, True, spacing))
         if Path(args.kitchen).is_dir():
             rows.append(scene_rows("redkitchen_100", Path(args.kitchen), work, False))
+            rows.append(scene_rows("redkitchen_100, seed spacing", Path(args.kitchen), work, False, spacing))
     report = {"seed": args.seed, "objects": args.objects, "views": args.views, "tables": args.tables,
               "table_views": args.table_views, "close_radius": list(args.close_radius),
+              "seed_spacing": args.seed_spacing,
               "synth_room_s": room["seconds"], "rows": rows}
     png = plot(report, Path(args.out) / "room.png")
     return finish(args, report, "bench_room", to_rows, plots=[png])

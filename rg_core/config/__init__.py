@@ -136,6 +136,10 @@ class MapConfig:
     seed_stride: int = 4
     """One new Gaussian per stride x stride block of unexplained pixels (fewer, larger Gaussians
     converge in fewer iterations: 4 beat 2 and 3 on both test scenes at equal time)."""
+    seed_spacing: Annotated[float, Interval(ge=0.0)] = 0.0
+    """Surfaces so far away that a stride x stride block spans more than this (m) are seeded at half
+    the stride (0: off). A room seen from head height has objects a few tens of pixels wide; see
+    bench_room for what it buys and costs."""
     seed_scale: float = 0.6
     """New scale = seed_scale x stride x depth / focal length (the local point spacing)."""
     init_opacity: float = 0.9

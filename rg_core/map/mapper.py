@@ -22,6 +22,7 @@ from ..geometry.rotations import pose_distances
 from ..render import EPS2D, Camera, RenderOutput, rasterize
 from .frames import PreparedFrame, downscale_depth, prepare_frame
 from .gaussians import PARAMS, GaussianModel, ResizableAdam
+from .seeding import local_range, seed_pixels
 
 log = logging.getLogger(__name__)
 
@@ -218,48 +219,41 @@ class Mapper:
         tol = torch.clamp(depth * c.depth_error_rel, min=c.depth_error_abs)
         # Within one seed footprint of a depth discontinuity the rendered (expected) depth blends
         # both surfaces: the depth test is meaningless there, only coverage (alpha) counts.
-        k = 2 * c.seed_stride + 1
-        big = torch.where(valid, depth, torch.full_like(depth, 1e6))[None, None]
-        hi = torch.nn.functional.max_pool2d(torch.where(valid, depth, torch.zeros_like(depth))[None, None], k, 1, k // 2)
-        lo = -torch.nn.functional.max_pool2d(-big, k, 1, k // 2)
-        near_edge = (hi - lo)[0, 0] > tol
+        near_edge = local_range(depth, 2 * c.seed_stride + 1, valid) > tol
         return valid & ((out.alpha < c.unexplained_alpha) | ((err > tol) & ~near_edge))
 
     def _seed(self, fr: PreparedFrame, unexplained: torch.Tensor, depth: torch.Tensor | None = None,
               stride: int | None = None) -> tuple[int, int]:
         """Back-project unexplained depth pixels (one per stride x stride block) as new Gaussians;
-        `depth` [h, w] (default the frame's sensor depth) places them."""
+        `depth` [h, w] (default the frame's sensor depth) places them. With the default stride and
+        `seed_spacing`, surfaces so far that a block spans more than it are seeded at half the stride."""
         c = self.cfg
         s = stride or c.seed_stride
-        # Every stride x stride block holding an unexplained pixel gets one seed, at its unexplained
-        # pixel closest to the block centre: thin regions (object rims) are never skipped.
-        vs, us = torch.nonzero(unexplained, as_tuple=True)
-        if len(vs):
-            w_blocks = (unexplained.shape[1] + s - 1) // s
-            block = (vs // s) * w_blocks + (us // s)
-            centre = (s - 1) / 2.0
-            dist = (vs % s - centre) ** 2 + (us % s - centre) ** 2
-            order = torch.argsort(block * (2 * s * s + 1) + dist.round().long(), stable=True)
-            block, vs, us = block[order], vs[order], us[order]
-            first = torch.ones_like(block, dtype=torch.bool)
-            first[1:] = block[1:] != block[:-1]
-            vs, us = vs[first], us[first]
+        z = torch.from_numpy(fr.depth) if depth is None else depth                  # [h, w] metres
+        if stride is None and c.seed_spacing > 0 and s > 1:
+            far = z * (s / float(fr.K[0, 0])) > c.seed_spacing                        # [h, w]: a block spans more
+            parts = [(seed_pixels(unexplained & far, s // 2), s // 2), (seed_pixels(unexplained & ~far, s), s)]
+        else:
+            parts = [(seed_pixels(unexplained, s), s)]
+        vs = torch.cat([p[0][0] for p in parts])
+        us = torch.cat([p[0][1] for p in parts])
+        strides = torch.cat([torch.full((len(p[0][0]),), float(p[1]), dtype=torch.float64) for p in parts])
         n_cand = len(vs)
         room = max(c.max_gaussians - len(self.gaussians), 0)
         if n_cand > room and c.evict:
             room += self.evict(min(n_cand, c.max_gaussians) - room, fr.K, fr.cam_to_world, *unexplained.shape[::-1])
         if n_cand > room:
             pick = torch.randperm(n_cand, generator=self._rng)[:room].sort().values
-            vs, us = vs[pick], us[pick]
+            vs, us, strides = vs[pick], us[pick], strides[pick]
         if len(vs) == 0:
             return 0, n_cand
         K = torch.as_tensor(fr.K, dtype=torch.float64)
-        z = (torch.from_numpy(fr.depth) if depth is None else depth)[vs, us].double()
+        z = z[vs, us].double()
         pc = torch.stack([(us.double() - K[0, 2]) * z / K[0, 0], (vs.double() - K[1, 2]) * z / K[1, 1], z], 1)
         c2w = torch.as_tensor(fr.cam_to_world)
         pw = pc @ c2w[:3, :3].T + c2w[:3, 3]
         # Scale from the local point spacing: the footprint of a stride x stride block at depth z.
-        scale = c.seed_scale * s * z / K[0, 0]
+        scale = c.seed_scale * strides * z / K[0, 0]
         colors = torch.from_numpy(fr.rgb)[vs, us]
         self.gaussians.append(pw.float(), scale.float(), colors, c.init_opacity)
         self.optim.sync()
