@@ -77,7 +77,7 @@ def to_rows(report: dict) -> tuple[list[dict], str]:
 def plot(report: dict, png: Path) -> Path:
     plt = pyplot()
     rows = report["rows"]
-    fig, ax = plt.subplots(1, 3, figsize=(12, 3.2))
+    fig, ax = plt.subplots(1, 3, figsize=(12, 4.2))
     names = [r["scene"] for r in rows]
     ax[0].bar(names, [r["map_s"] for r in rows])
     ax[0].set_ylabel("rg map seconds")
@@ -91,7 +91,9 @@ def plot(report: dict, png: Path) -> Path:
     ax[2].set_ylabel("visible mIoU, oracle")
     ax[2].legend(fontsize=7)
     for a in ax:
-        a.tick_params(axis="x", labelsize=7)
+        a.tick_params(axis="x", labelsize=7, labelrotation=30)
+        for t in a.get_xticklabels():
+            t.set_horizontalalignment("right")
     fig.suptitle(f"room scale: {report['objects']} objects, {report['views']} views", fontsize=9)
     save_figure(fig, png)
     return png
