@@ -229,15 +229,16 @@ class Mapper:
         `seed_spacing`, surfaces so far that a block spans more than it are seeded at half the stride."""
         c = self.cfg
         s = stride or c.seed_stride
-        z = torch.from_numpy(fr.depth) if depth is None else depth                  # [h, w] metres
+        depth = torch.from_numpy(fr.depth) if depth is None else depth              # [h, w] metres
         if stride is None and c.seed_spacing > 0 and s > 1:
-            far = z * (s / float(fr.K[0, 0])) > c.seed_spacing                        # [h, w]: a block spans more
-            parts = [(seed_pixels(unexplained & far, s // 2), s // 2), (seed_pixels(unexplained & ~far, s), s)]
+            far = depth * (s / float(fr.K[0, 0])) > c.seed_spacing                    # [h, w]: a block spans more
+            regions = [(unexplained & far, s // 2), (unexplained & ~far, s)]
         else:
-            parts = [(seed_pixels(unexplained, s), s)]
-        vs = torch.cat([p[0][0] for p in parts])
-        us = torch.cat([p[0][1] for p in parts])
-        strides = torch.cat([torch.full((len(p[0][0]),), float(p[1]), dtype=torch.float64) for p in parts])
+            regions = [(unexplained, s)]
+        picked = [(*seed_pixels(m, st), st) for m, st in regions]                      # (rows, cols, stride)
+        vs = torch.cat([p[0] for p in picked])
+        us = torch.cat([p[1] for p in picked])
+        strides = torch.cat([torch.full((len(p[0]),), float(p[2]), dtype=torch.float64) for p in picked])
         n_cand = len(vs)
         room = max(c.max_gaussians - len(self.gaussians), 0)
         if n_cand > room and c.evict:
@@ -248,7 +249,7 @@ class Mapper:
         if len(vs) == 0:
             return 0, n_cand
         K = torch.as_tensor(fr.K, dtype=torch.float64)
-        z = z[vs, us].double()
+        z = depth[vs, us].double()
         pc = torch.stack([(us.double() - K[0, 2]) * z / K[0, 0], (vs.double() - K[1, 2]) * z / K[1, 1], z], 1)
         c2w = torch.as_tensor(fr.cam_to_world)
         pw = pc @ c2w[:3, :3].T + c2w[:3, 3]

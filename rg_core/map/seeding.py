@@ -6,20 +6,13 @@ import torch
 import torch.nn.functional as F
 
 
-def local_range(img: torch.Tensor, k: int, valid: torch.Tensor | None = None) -> torch.Tensor:
-    """Max minus min of img [h, w] or [h, w, C] (largest over channels) over k x k windows: [h, w].
-    Pixels where `valid` [h, w] is False take part in neither the max nor the min."""
-    x = img if img.dim() == 3 else img[..., None]
-    x = x.permute(2, 0, 1)[None].float()                                         # [1, C, h, w]
-    if valid is None:
-        hi, lo = x, x
-    else:
-        v = valid[None, None]
-        hi = torch.where(v, x, torch.full_like(x, -1e6))
-        lo = torch.where(v, x, torch.full_like(x, 1e6))
-    hi = F.max_pool2d(hi, k, 1, k // 2)
-    lo = -F.max_pool2d(-lo, k, 1, k // 2)
-    return (hi - lo).clamp(min=0).amax(1)[0]                                      # [h, w]
+def local_range(img: torch.Tensor, k: int, valid: torch.Tensor) -> torch.Tensor:
+    """Max minus min of img [h, w] over the `valid` [h, w] pixels of each k x k window: [h, w]
+    (0 where a window holds no valid pixel)."""
+    x, v = img[None, None].float(), valid[None, None]                          # [1, 1, h, w]
+    hi = F.max_pool2d(torch.where(v, x, torch.full_like(x, -1e6)), k, 1, k // 2)
+    lo = -F.max_pool2d(torch.where(v, -x, torch.full_like(x, -1e6)), k, 1, k // 2)
+    return (hi - lo).clamp(min=0)[0, 0]
 
 
 def seed_pixels(mask: torch.Tensor, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
