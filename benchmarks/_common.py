@@ -48,6 +48,13 @@ def machine() -> dict:
     return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(), "torch": tv}
 
 
+def rasterizer_built() -> bool:
+    """Whether the C++ rasterizer loads; without it the pure-torch twin renders, about 8x slower."""
+    from rg_core.render import fast_cpu
+
+    return fast_cpu.available()
+
+
 def command_line(argv: list[str] | None = None) -> str:
     """The command that produced this result, as a user types it (without --json / --record)."""
     argv = sys.argv if argv is None else argv
@@ -112,6 +119,8 @@ def write_result(script: str, rows: list[dict], notes: str, *, command: str | No
             kept.append(str(dst.relative_to(ROOT)) if dst.is_relative_to(ROOT) else str(dst))
     load = os.getloadavg()   # the CPU may be shared: say how busy it was
     notes = f"{notes}; load average {load[0]:.1f} (1 min) / {load[1]:.1f} (5 min) at the end, {os.cpu_count()} cores"
+    if "rg_core.render" in sys.modules and not rasterizer_built():   # timings about 8x slower: say so
+        notes += "; PURE-TORCH RASTERIZER (the C++ kernel was not built)"
     rec = {"script": script, "command": command or command_line(), "date": time.strftime("%Y-%m-%d"),
            "machine": machine(), "rows": rows, "notes": notes}
     if kept:

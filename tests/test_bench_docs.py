@@ -62,6 +62,8 @@ def test_schema_check_rejects_bad_records():
 
 
 def test_write_result_round_trip(tmp_path):
+    import rg_core.render  # noqa: F401  (as a script that renders)
+
     png = tmp_path / "p.png"
     png.write_bytes(b"\x89PNG")
     path = _common.write_result("bench_demo", [{"case": "a", "time_s": 1.25}], "one line", command="python x.py",
@@ -69,4 +71,14 @@ def test_write_result_round_trip(tmp_path):
     rec = json.loads(path.read_text())
     assert _common.check_result(rec) == [] and rec["command"] == "python x.py"
     assert rec["machine"]["cores"] >= 1 and len(rec["plots"]) == 1
+    assert ("PURE-TORCH" in rec["notes"]) != _common.rasterizer_built()
+
+
+def test_results_say_when_the_pure_torch_rasterizer_rendered(tmp_path, monkeypatch):
+    from rg_core.render import fast_cpu
+
+    monkeypatch.setattr(fast_cpu, "_lib", None)
+    rec = json.loads(_common.write_result("bench_demo", [{"case": "a"}], "x", command="python x.py",
+                                          out_dir=tmp_path).read_text())
+    assert rec["notes"].endswith("PURE-TORCH RASTERIZER (the C++ kernel was not built)") and not _common.check_result(rec)
     assert make_docs.header("explicit_visible_miou") == "explicit visible mIoU" and make_docs.cell(0.123456) == "0.1235" and make_docs.cell(47.0) == "47.0"
