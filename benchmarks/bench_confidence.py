@@ -107,21 +107,22 @@ def choose_c(X: np.ndarray, y: np.ndarray, scenes: np.ndarray) -> tuple[float, d
         for s in np.unique(scenes):
             out = scenes == s
             mean, std, lr = _logistic(X[~out], y[~out], C)
-            p[out] = ConfidenceModel("", "", mean, std, lr.coef_[0], float(lr.intercept_[0]), 0.5).probabilities(X[out])
+            p[out] = ConfidenceModel("", "", [""] * X.shape[1], mean, std, lr.coef_[0], float(lr.intercept_[0]), 0.5).probabilities(X[out])
         p = np.clip(p, 1e-6, 1 - 1e-6)
         loss[C] = round(float(-np.mean(y * np.log(p) + (~y) * np.log(1 - p))), 4)
     return min(loss, key=loss.get), loss
 
 
-def fit(queries: list[dict], preset: str, supervision: str, fitted_on: str) -> ConfidenceModel:
-    """A logistic model on the answered queries of maps with `supervision`, its L2 strength chosen
-    by leave-one-scene-out log-loss (choose_c)."""
+def fit(queries: list[dict], preset: str, supervision: str, fitted_on: str,
+        features: tuple[str, ...] = FEATURES) -> ConfidenceModel:
+    """A logistic model on `features` of the answered queries of maps with `supervision`, its L2
+    strength chosen by leave-one-scene-out log-loss (choose_c)."""
     qs = [q for q in queries if q["answered"] and q["supervision"] == supervision]
-    X = np.array([[q["evidence"].get(k, np.nan) for k in FEATURES] for q in qs], np.float64)
+    X = np.array([[q["evidence"].get(k, np.nan) for k in features] for q in qs], np.float64)
     y = np.array([q["right"] for q in qs], bool)
     C, losses = choose_c(X, y, np.array([q["scene"] for q in qs]))
     mean, std, lr = _logistic(X, y, C)
-    m = ConfidenceModel(preset, supervision, mean, std, lr.coef_[0], float(lr.intercept_[0]), 0.5,
+    m = ConfidenceModel(preset, supervision, list(features), mean, std, lr.coef_[0], float(lr.intercept_[0]), 0.5,
                         f"{fitted_on}, C={C:g}")
     p = m.probabilities(X)
     m.threshold = next((t for t in np.round(np.arange(0.0, 1.0, 0.01), 2)

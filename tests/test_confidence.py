@@ -47,7 +47,7 @@ def test_calibration_block_counts_wrong_answers_returned_as_success(tmp_path):
 
 def _model(coef, threshold=0.5):
     F = len(FEATURES)
-    return ConfidenceModel("test", "default", np.zeros(F), np.ones(F), np.asarray(coef, float), 0.0, threshold)
+    return ConfidenceModel("test", "default", list(FEATURES), np.zeros(F), np.ones(F), np.asarray(coef, float), 0.0, threshold)
 
 
 def test_model_probability_weakest_and_missing_values():
@@ -66,7 +66,7 @@ def test_model_probability_weakest_and_missing_values():
     back = ConfidenceModel.from_json(json.loads(json.dumps(m.to_json())))
     assert back.probability({"name_margin": 0.3}) == pytest.approx(m.probability({"name_margin": 0.3}))
     bad = m.to_json()
-    bad["features"] = bad["features"][:-1]
+    bad["features"] = bad["features"][:-1] + ["a feature this code does not measure"]
     with pytest.raises(ValueError, match="refit"):
         ConfidenceModel.from_json(bad)
 

@@ -106,13 +106,32 @@ def registration_border(offsets: np.ndarray, max_px: int = 3, min_pixels: int = 
     return int(min(max_px, max(1, round(float(np.median(o))))))
 
 
+def sight(points: np.ndarray, K: np.ndarray, cam_to_world: np.ndarray, depth: np.ndarray, tol_size: np.ndarray,
+          depth_tol_abs: float = 0.02, depth_tol_rel: float = 0.02) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """points [N, 3] world in one camera with sensor depth [h, w] -> (on [N] bool: projects onto the
+    image, seen [N] bool: the sensor depth there is within max(abs, rel * depth, tol_size) of the
+    point's, rows [N], cols [N] int64: its pixel, -1 off the image)."""
+    h, w = depth.shape
+    uv, z = project(points, np.asarray(K, np.float64), np.asarray(cam_to_world, np.float64))
+    front = z > 1e-6
+    u = np.full(len(points), -1, np.int64)
+    r = np.full(len(points), -1, np.int64)
+    u[front], r[front] = np.floor(uv[front]).astype(np.int64).T
+    on = front & (u >= 0) & (u < w) & (r >= 0) & (r < h)
+    r[~on], u[~on] = -1, -1
+    d = np.zeros(len(points))
+    d[on] = depth[r[on], u[on]]
+    seen = on & (d > 0) & (np.abs(z - d) <= np.maximum(np.maximum(depth_tol_abs, depth_tol_rel * d), tol_size))
+    return on, seen, r, u
+
+
 def mask_votes(points: np.ndarray, views: list[MaskView], sizes: np.ndarray | None = None, border_px: int = 0,
                depth_tol_abs: float = 0.02, depth_tol_rel: float = 0.02, size_tol: float = 2.0) -> MaskVotes:
     """points [N, 3] world, sizes [N] (largest std dev, m) -> how many views see each point inside
     and outside their mask of the target (masks dilated by `border_px`), and in how many views it
     projects into the mask or anywhere on the image, seen or hidden.
     A view sees a point when the sensor depth there is within max(abs, rel * depth, size_tol * size)
-    of the point's: a Gaussian that large reaches the surface (one sunk into the table is the table)."""
+    of the point's (`sight`): a Gaussian that large reaches the surface (one sunk into the table is the table)."""
     import cv2
 
     pts = np.asarray(points, np.float64)
@@ -126,15 +145,7 @@ def mask_votes(points: np.ndarray, views: list[MaskView], sizes: np.ndarray | No
         h, w = v.mask.shape
         if v.depth.shape != (h, w):
             raise ValueError(f"mask_votes: depth {v.depth.shape} and mask {(h, w)} differ")
-        uv, z = project(pts, np.asarray(v.K, np.float64), np.asarray(v.cam_to_world, np.float64))
-        front = z > 1e-6
-        u = np.full(len(pts), -1, np.int64)
-        r = np.full(len(pts), -1, np.int64)
-        u[front], r[front] = np.floor(uv[front]).astype(np.int64).T
-        on = front & (u >= 0) & (u < w) & (r >= 0) & (r < h)
-        d = np.zeros(len(pts))
-        d[on] = v.depth[r[on], u[on]]
-        seen = on & (d > 0) & (np.abs(z - d) <= np.maximum(np.maximum(depth_tol_abs, depth_tol_rel * d), tol_size))
+        on, seen, r, u = sight(pts, v.K, v.cam_to_world, v.depth, tol_size, depth_tol_abs, depth_tol_rel)
         m = v.mask.astype(np.uint8)
         if border_px > 0:
             m = cv2.dilate(m, np.ones((2 * border_px + 1,) * 2, np.uint8))

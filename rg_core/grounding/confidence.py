@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .carve import MaskView, mask_votes
+from .carve import sight
 from .relevancy import CANONICAL, relevancy_pca
 
 DATA = Path(__file__).resolve().parents[1] / "perception" / "data"
@@ -28,29 +28,34 @@ BACKGROUND_SAMPLE = 2048   # Gaussians whose relevancy stands for the map's back
 AGREE_POINTS = 400         # group Gaussians projected into the other keyframes
 CLIP = 3.0                 # standardised features are clipped to this many spreads
 
-# name -> what it measures (the explanation's words); the model's input order. Counts that grow with
-# the map (how many keyframes see the group) are evidence in the result but not model inputs: they
-# would not transfer from the fit scenes to a map of another size.
-FEATURES = {
+# name -> what it measures (the explanation's words). A model reads the subset it was fitted on
+# (ConfidenceModel.features). Counts that grow with the map (how many keyframes see the group) are
+# evidence in the result but never model inputs: they would not transfer to a map of another size.
+EVIDENCE = {
     "mask_similarity": "best mask's similarity to the target name",
     "name_margin": "reference mask's margin to the runner-up name",
     "margin_gap": "reference mask's name margin short of the map's most target-specific mask",
+    "name_distinctness": "how far the target name lies from the vocabulary's nearest other name",
     "mask_share": "reference mask's share of its image",
     "relevancy_peak": "relevancy peak",
     "relevancy_z": "relevancy peak against the map's background",
     "group_relevancy_z": "group's relevancy against the map's background",
+    "relevancy_contrast": "group's relevancy above the most relevant 1 % of the rest of the map",
     "view_agreement": "share of the group other views see inside their mask of the target",
+    "group_name_margin": "name margin of the masks other views hold the group in",
     "group_similarity": "instance-feature similarity of the group to the peak",
     "reasoner": "reasoner confidence",
 }
+FEATURES = tuple(k for k in EVIDENCE)   # what a model may read; views_seen and the background are reported only
 
 
 @dataclass
 class ConfidenceModel:
-    """P(right) = sigmoid(intercept + coef . (x - mean) / std), x in FEATURES order."""
+    """P(right) = sigmoid(intercept + coef . (x - mean) / std), x the evidence named by `features`."""
 
     preset: str
     supervision: str                 # the maps' supervision source it was fitted on: default | oracle
+    features: list[str]              # [F] its inputs, a subset of FEATURES
     mean: np.ndarray                 # [F]
     std: np.ndarray                  # [F]
     coef: np.ndarray                 # [F]
@@ -59,8 +64,8 @@ class ConfidenceModel:
     fitted_on: str = ""
     metrics: dict = field(default_factory=dict)
 
-    def _z(self, ev: dict[str, float]) -> np.ndarray:
-        return self.standardise(np.array([ev.get(k, math.nan) for k in FEATURES], np.float64))
+    def inputs(self, ev: dict[str, float]) -> np.ndarray:  # -> [F]
+        return np.array([ev.get(k, math.nan) for k in self.features], np.float64)
 
     def standardise(self, x: np.ndarray) -> np.ndarray:  # [..., F] -> [..., F]
         """Standardised features, a missing one as the fit's mean, each clipped to +-CLIP spreads:
@@ -68,30 +73,31 @@ class ConfidenceModel:
         x = np.where(np.isfinite(x), x, self.mean)
         return np.clip((x - self.mean) / self.std, -CLIP, CLIP)
 
-    def probabilities(self, x: np.ndarray) -> np.ndarray:  # features [..., F] in FEATURES order -> [...]
+    def probabilities(self, x: np.ndarray) -> np.ndarray:  # inputs [..., F] -> [...]
         return 1.0 / (1.0 + np.exp(-np.clip(self.intercept + self.standardise(x) @ self.coef, -50, 50)))
 
     def probability(self, ev: dict[str, float]) -> float:
-        return float(self.probabilities(np.array([ev.get(k, math.nan) for k in FEATURES], np.float64)))
+        return float(self.probabilities(self.inputs(ev)))
 
     def weakest(self, ev: dict[str, float], n: int = 2) -> list[str]:
         """The features that pull the probability down most: those the model reads "more is better"
         (positive weight) that lie below the fit's mean, the largest pull first."""
-        contrib = np.where(self.coef > 0, self.coef * self._z(ev), 0.0)
-        names = list(FEATURES)
-        return [names[i] for i in np.argsort(contrib)[:n] if contrib[i] < 0]
+        contrib = np.where(self.coef > 0, self.coef * self.standardise(self.inputs(ev)), 0.0)
+        return [self.features[i] for i in np.argsort(contrib)[:n] if contrib[i] < 0]
 
     def to_json(self) -> dict:
-        return {"preset": self.preset, "supervision": self.supervision, "features": list(FEATURES), "mean": self.mean.tolist(),
-                "std": self.std.tolist(), "coef": self.coef.tolist(), "intercept": self.intercept,
-                "threshold": self.threshold, "fitted_on": self.fitted_on, "metrics": self.metrics}
+        return {"preset": self.preset, "supervision": self.supervision, "features": list(self.features),
+                "mean": self.mean.tolist(), "std": self.std.tolist(), "coef": self.coef.tolist(),
+                "intercept": self.intercept, "threshold": self.threshold, "fitted_on": self.fitted_on,
+                "metrics": self.metrics}
 
     @staticmethod
     def from_json(d: dict) -> "ConfidenceModel":
-        if list(d.get("features", [])) != list(FEATURES):
-            raise ValueError(f"confidence model for {d.get('preset')!r} was fitted on features {d.get('features')}, "
-                             f"this code measures {list(FEATURES)}: refit with python benchmarks/bench_confidence.py --fit")
-        return ConfidenceModel(d["preset"], d.get("supervision", "default"), np.asarray(d["mean"], np.float64),
+        feats = list(d.get("features", []))
+        if not feats or set(feats) - set(FEATURES):
+            raise ValueError(f"confidence model for {d.get('preset')!r} reads features {feats}, this code measures "
+                             f"{list(FEATURES)}: refit with python benchmarks/bench_confidence.py --fit")
+        return ConfidenceModel(d["preset"], d.get("supervision", "default"), feats, np.asarray(d["mean"], np.float64),
                                np.asarray(d["std"], np.float64),
                                np.asarray(d["coef"], np.float64), float(d["intercept"]), float(d["threshold"]),
                                d.get("fitted_on", ""), d.get("metrics", {}))
@@ -123,47 +129,64 @@ def _robust(x: torch.Tensor) -> tuple[float, float]:
     return med, 1.4826 * max(float((x - med).abs().median()), 1e-3)
 
 
-def background(g, scale: float) -> torch.Tensor:
-    """PCA codes [M, k] of the language feature at `scale` of up to BACKGROUND_SAMPLE Gaussians
-    (a fixed random sample), cached with the map: the distribution a peak must stand out of."""
+def background(g, scale: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(ids [M] of up to BACKGROUND_SAMPLE Gaussians, a fixed random sample, and the PCA codes [M, k]
+    of their language feature at `scale`), cached with the map: the distribution a peak must stand
+    out of."""
     g._check_cache()
     N = len(g.field.latents)
 
     def make():
-        idx = np.sort(np.random.default_rng(g.gcfg.seed).choice(N, min(N, BACKGROUND_SAMPLE), replace=False))
+        idx = torch.from_numpy(np.sort(np.random.default_rng(g.gcfg.seed).choice(N, min(N, BACKGROUND_SAMPLE),
+                                                                                replace=False)))
         with torch.no_grad():
-            return g.field.language(g.field.latents[torch.from_numpy(idx)], scale)
+            return idx, g.field.language(g.field.latents[idx], scale)
     return g.cache.get("background", (round(scale, 4), N), make)
 
 
-def view_agreement(g, ref, ids: np.ndarray) -> tuple[float, int]:
+def view_agreement(g, ref, ids: np.ndarray, target: torch.Tensor, other: torch.Tensor | None) -> tuple[float, int, float]:
     """Over the keyframes other than the reference that see the group (>= 20 % of its sampled
-    Gaussians, carve.mask_votes' visibility test), the mean share of the seen ones inside that
-    keyframe's best mask of the target, and how many such keyframes; (nan, 0) when none sees it."""
+    Gaussians, carve.sight's visibility test): the mean share of the seen ones inside that keyframe's
+    best mask of the target, how many such keyframes, and the mean name margin (similarity to
+    `target` [D] less the best of `other` [O, D]) of the mask in each that holds most of the seen
+    ones (the smaller of equals). (nan, 0, nan) when none sees it."""
+    import cv2
+
     if not len(ids):
-        return math.nan, 0
+        return math.nan, 0, math.nan
     gs = g.mapper.gaussians
     pick = ids if len(ids) <= AGREE_POINTS else ids[np.linspace(0, len(ids) - 1, AGREE_POINTS).astype(np.int64)]
-    pts = gs.means.detach()[torch.from_numpy(pick)].numpy()                          # [P, 3] world
-    sizes = gs.scales.detach()[torch.from_numpy(pick)].max(1).values.numpy()          # [P]
+    pts = gs.means.detach()[torch.from_numpy(pick)].numpy().astype(np.float64)        # [P, 3] world
+    tol = 2.0 * gs.scales.detach()[torch.from_numpy(pick)].max(1).values.numpy()      # [P] as carve.mask_votes
     sup = g.mapper.supervision.by_keyframe
     border = g.vote_border()
-    shares = []
+    shares, margins = [], []
     for c in ref.candidates:
         kf = c.keyframe
-        mask = sup[kf.index].masks[c.index]
+        s = sup[kf.index]
+        mask = s.masks[c.index]
         if kf.index == ref.keyframe.index or mask.shape != tuple(kf.depth.shape):
             continue
-        view = MaskView(np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64), kf.depth.numpy(), mask)
-        v = mask_votes(pts, [view], sizes, border_px=border)
-        seen = v.inside + v.outside                                                   # [P] 0 or 1
-        if seen.sum() >= 0.2 * len(pts):
-            shares.append(float(v.inside.sum() / seen.sum()))
-    return (float(np.mean(shares)) if shares else math.nan), len(shares)
+        on, seen, r, u = sight(pts, kf.K, kf.cam_to_world, kf.depth.numpy(), tol)
+        if seen.sum() < 0.2 * len(pts):
+            continue
+        m = mask.astype(np.uint8)
+        if border > 0:
+            m = cv2.dilate(m, np.ones((2 * border + 1,) * 2, np.uint8))
+        shares.append(float((m[r[seen], u[seen]] > 0).mean()))
+        held = s.masks[:, r[seen], u[seen]].sum(1)                                    # [M] seen points per mask
+        best = np.flatnonzero(held == held.max())
+        j = int(best[np.argmin(s.masks[best].sum((1, 2)))])
+        e = torch.nn.functional.normalize(s.embeddings[j].float(), dim=-1)
+        margins.append(float(e @ target) - (float((other @ e).max()) if other is not None else -1.0))
+    if not shares:
+        return math.nan, 0, math.nan
+    return float(np.mean(shares)), len(shares), float(np.mean(margins))
 
 
 def evidence(g, reasoning, ref, pk, vocabulary: list[str], ids: np.ndarray, group_similarity: float) -> dict[str, float]:
-    """The evidence behind an answer (FEATURES): a few ms on top of the query."""
+    """The evidence behind an answer (EVIDENCE, views_seen and the background's median and spread):
+    a few ms on top of the query."""
     sset = g.mapper.supervision
     sup = sset.by_keyframe[ref.keyframe.index]
     others = [n for n in dict.fromkeys(vocabulary) if n != reasoning.target]
@@ -174,18 +197,26 @@ def evidence(g, reasoning, ref, pk, vocabulary: list[str], ids: np.ndarray, grou
     emb = torch.nn.functional.normalize(sup.embeddings[ref.mask_index].float(), dim=-1)           # [D]
     runner_up = float((other @ emb).max()) if others else -1.0
     name_margin = float(emb @ ref.target) - runner_up
+    target_text = g.encode([reasoning.target])[0]
+    distinct = 1.0 - float((other @ target_text).max()) if others else 1.0
     pca = g.mapper.supervision.pca.pca
-    texts = (g.encode([reasoning.target])[0], g.encode(list(CANONICAL)))
-    bg = relevancy_pca(background(g, ref.scale), pca.components, pca.mean, *texts)             # [M]
+    texts = (target_text, g.encode(list(CANONICAL)))
+    bg_ids, bg_codes = background(g, ref.scale)
+    bg = relevancy_pca(bg_codes, pca.components, pca.mean, *texts)                                # [M]
     med, spread = _robust(bg)
+    ids = np.asarray(ids, np.int64)
     with torch.no_grad():
-        z = g.field.language(g.field.latents[torch.from_numpy(np.asarray(ids, np.int64))], ref.scale)
+        z = g.field.language(g.field.latents[torch.from_numpy(ids)], ref.scale)
     group_rel = float(relevancy_pca(z, pca.components, pca.mean, *texts).mean()) if len(ids) else med
-    agree, seen = view_agreement(g, ref, ids)
+    rest = bg[~torch.from_numpy(np.isin(bg_ids.numpy(), ids))]
+    top = float(torch.quantile(rest, 0.99)) if len(rest) else med
+    agree, seen, group_margin = view_agreement(g, ref, ids, ref.target, other)
     return {"mask_similarity": float(ref.similarity), "name_margin": name_margin,
-            "margin_gap": name_margin - float(margins.max()), "mask_share": float(ref.mask.float().mean()),
+            "margin_gap": name_margin - float(margins.max()), "name_distinctness": distinct,
+            "mask_share": float(ref.mask.float().mean()),
             "relevancy_peak": float(pk.relevancy), "relevancy_z": (float(pk.relevancy) - med) / spread,
-            "group_relevancy_z": (group_rel - med) / spread, "view_agreement": agree, "views_seen": float(seen),
+            "group_relevancy_z": (group_rel - med) / spread, "relevancy_contrast": (group_rel - top) / spread,
+            "view_agreement": agree, "views_seen": float(seen), "group_name_margin": group_margin,
             "group_similarity": float(group_similarity), "reasoner": float(reasoning.confidence),
             "background_median": med, "background_spread": spread}
 
@@ -205,7 +236,7 @@ def describe(ev: dict[str, float], names: list[str]) -> str:
                        f"{int(ev['views_seen'])} other views see the group, {100 * ev['view_agreement']:.0f} % of it "
                        f"inside their mask of the target")
         else:
-            out.append(f"{FEATURES[n]} {v:.2f}")
+            out.append(f"{EVIDENCE[n]} {v:.2f}")
     return "; ".join(dict.fromkeys(out))
 
 
