@@ -1,6 +1,6 @@
 """Calibrated confidence and abstention (issue 26): fit the model on some scenes, report it on others.
 
-    python benchmarks/bench_confidence.py --fit [--seeds 101 ... 112]       # writes the model
+    python benchmarks/bench_confidence.py --fit [--seeds 101 ... 124]       # writes the model
     python benchmarks/bench_confidence.py [--seeds 201 ... 210] [--real DIR ...] [--json] [--record]
 
 Every scene (`rg synth`, 30 views 320x240, 7 objects, each seed; and the real scenes: by default
@@ -38,7 +38,7 @@ from rg_core.synth.generator import default_objects_dir, generate_scene  # noqa:
 from _common import add_output_flags, finish  # noqa: E402
 
 RUN = "import sys; from rg_core.cli import main; sys.exit(main(sys.argv[1:]))"
-FIT_SEEDS = tuple(range(101, 113))
+FIT_SEEDS = tuple(range(101, 125))
 HELD_OUT_SEEDS = tuple(range(201, 211))
 SUPERVISIONS = ("default", "oracle")   # one model each: their evidence lives on different scales
 REAL = ("ycbv_0002_bop", "ycb_video_3")   # held-out real scenes (../shared/data/rgbd): never fitted on
@@ -92,8 +92,8 @@ def _logistic(X: np.ndarray, y: np.ndarray, C: float):
     """-> (mean, std, fitted LogisticRegression) on features X [Q, F] with nan as the mean."""
     from sklearn.linear_model import LogisticRegression
 
-    mean = np.nanmean(X, 0)
-    X = np.where(np.isfinite(X), X, mean)
+    mean = np.nan_to_num(np.nanmean(np.where(np.isfinite(X), X, np.nan), 0)) if len(X) else np.zeros(X.shape[1])
+    X = np.where(np.isfinite(X), X, mean)   # a missing value as the mean (a column never measured: 0)
     std = np.maximum(X.std(0), 1e-6)
     return mean, std, LogisticRegression(C=C, max_iter=1000).fit((X - mean) / std, y)
 
@@ -173,7 +173,7 @@ def to_rows(report: dict) -> tuple[list[dict], str]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fit", action="store_true", help="fit and store the model (default seeds: the fit seeds)")
-    ap.add_argument("--seeds", type=int, nargs="*", help="rg synth seeds (default: 201-210; --fit: 101-112)")
+    ap.add_argument("--seeds", type=int, nargs="*", help="rg synth seeds (default: 201-210; --fit: 101-124)")
     ap.add_argument("--real", nargs="*", default=[str(ROOT.parent / "shared/data/rgbd" / n) for n in REAL],
                     help="real scenes with ground truth, any `rg eval` reads (none: synthetic only)")
     ap.add_argument("--preset", default="offline")

@@ -127,6 +127,29 @@ def test_answers_carry_evidence_and_abstain_below_the_threshold(grounder, synth_
         grounder.gcfg.min_confidence = -1.0
 
 
+def test_evidence_of_names_and_of_the_group_in_other_views(grounder, synth_scene):
+    names = list(dict.fromkeys(list(grounder.scene_names) + list(grounder.gcfg.vocabulary)))
+    name = names[0]
+    r = grounder.ground(name, mode="explicit")
+    ev = r.evidence
+    t = grounder.encode(names)                                       # [n, D] unit rows
+    assert ev["name_distinctness"] == pytest.approx(1.0 - float((t[1:] @ t[0]).max()), abs=1e-5)
+    # the group's own masks in other views name it: its margin is a similarity difference
+    assert ev["views_seen"] >= 1 and -2.0 <= ev["group_name_margin"] <= 2.0
+    # measured from the top 1 % of the rest of the map, not from its median
+    assert math.isfinite(ev["relevancy_contrast"]) and ev["relevancy_contrast"] < ev["group_relevancy_z"]
+    saved = grounder.scene_names
+    grounder.scene_names = []                                        # none declared: the whole vocabulary
+    try:
+        grounder.cache.clear()
+        vocab = [n for n in grounder.vocabulary() if n != name]
+        whole = grounder.ground(name, mode="explicit").evidence["name_distinctness"]
+        assert whole == pytest.approx(1.0 - float((grounder.encode(vocab) @ grounder.encode([name])[0]).max()), abs=1e-5)
+    finally:
+        grounder.scene_names = saved
+        grounder.cache.clear()
+
+
 def test_eval_reports_confidence_per_query(grounder, synth_scene):
     from rg_core.eval.grounding import evaluate_queries
 

@@ -148,6 +148,21 @@ def test_mask_votes_carve_what_views_see_elsewhere_and_keep_hidden_parts():
         mask_votes(pts, views, sizes=np.ones(2))
 
 
+def test_sight_gives_pixels_and_visibility_and_marks_off_image_points():
+    from rg_core.grounding.carve import sight
+
+    K = np.array([[100.0, 0, 32], [0, 100.0, 32], [0, 0, 1]])
+    depth = np.ones((64, 64))
+    depth[56:64, 0:8] = 0.0                                 # a hole in the sensor depth (under the last point)
+    pts = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -0.3], [5.0, 0.0, 0.0], [-0.3, -0.3, 0.0]])
+    on, seen, r, u = sight(pts, K, _camera_looking_down(0.0), depth, np.zeros(4))
+    np.testing.assert_array_equal(on, [True, True, False, True])
+    np.testing.assert_array_equal(seen, [True, False, False, False])   # hidden below, off-image, in the hole
+    assert (r[2], u[2]) == (-1, -1) and 0 <= r[0] < 64 and 0 <= u[0] < 64 and depth[r[3], u[3]] == 0.0
+    # a Gaussian as large as the gap to the surface reaches it
+    assert sight(pts[1:2], K, _camera_looking_down(0.0), depth, np.array([0.31]))[1][0]
+
+
 def test_registration_border_measures_the_mask_to_depth_edge_offset():
     """A box standing 0.3 m out of a floor: its mask where the depth says it is gives 0 px; the same
     mask shifted by k px (colour and depth misregistered, as on a real RGB-D sensor) gives k px;

@@ -35,7 +35,7 @@ EVIDENCE = {
     "mask_similarity": "best mask's similarity to the target name",
     "name_margin": "reference mask's margin to the runner-up name",
     "margin_gap": "reference mask's name margin short of the map's most target-specific mask",
-    "name_distinctness": "how far the target name lies from the vocabulary's nearest other name",
+    "name_distinctness": "how far the target name lies from the nearest other name the scene holds",
     "mask_share": "reference mask's share of its image",
     "relevancy_peak": "relevancy peak",
     "relevancy_z": "relevancy peak against the map's background",
@@ -198,7 +198,11 @@ def evidence(g, reasoning, ref, pk, vocabulary: list[str], ids: np.ndarray, grou
     runner_up = float((other @ emb).max()) if others else -1.0
     name_margin = float(emb @ ref.target) - runner_up
     target_text = g.encode([reasoning.target])[0]
-    distinct = 1.0 - float((other @ target_text).max()) if others else 1.0
+    # against the names the caller says the scene holds (the confusers that matter); with none
+    # declared, against the whole vocabulary (more names: lower, the cautious side)
+    declared = [n for n in dict.fromkeys(list(g.scene_names) + list(g.gcfg.vocabulary)) if n != reasoning.target]
+    near = g.encode(declared) if declared else other
+    distinct = 1.0 - float((near @ target_text).max()) if near is not None else 1.0
     pca = g.mapper.supervision.pca.pca
     texts = (target_text, g.encode(list(CANONICAL)))
     bg_ids, bg_codes = background(g, ref.scale)
