@@ -42,7 +42,7 @@ FIT_SEEDS = tuple(range(101, 125))
 HELD_OUT_SEEDS = tuple(range(201, 211))
 SUPERVISIONS = ("default", "oracle")   # one model each: their evidence lives on different scales
 REAL = ("ycbv_0002_bop", "ycb_video_3")   # held-out real scenes (../shared/data/rgbd): never fitted on
-MAX_WRONG = 0.08   # the threshold: the lowest at which the fit answers' wrong-returned share is at most this
+MAX_WRONG = 0.08   # the threshold: the lowest at which the fit answers' out-of-scene wrong-returned share is at most this
 
 
 def rg_eval(scene: str, supervision: str) -> dict:
@@ -98,19 +98,22 @@ def _logistic(X: np.ndarray, y: np.ndarray, C: float):
     return mean, std, LogisticRegression(C=C, max_iter=1000).fit((X - mean) / std, y)
 
 
-def choose_c(X: np.ndarray, y: np.ndarray, scenes: np.ndarray) -> tuple[float, dict]:
+def choose_c(X: np.ndarray, y: np.ndarray, scenes: np.ndarray) -> tuple[float, dict, np.ndarray]:
     """The regularisation whose models, each fitted without one scene, predict that scene's answers
-    best (pooled log-loss of ConfidenceModel.probabilities)."""
-    loss = {}
+    best (pooled log-loss of ConfidenceModel.probabilities). -> (C, loss per C, those out-of-scene
+    probabilities [Q] at C)."""
+    loss, probs = {}, {}
     for C in C_GRID:
         p = np.zeros(len(y))
         for s in np.unique(scenes):
             out = scenes == s
             mean, std, lr = _logistic(X[~out], y[~out], C)
             p[out] = ConfidenceModel("", "", [""] * X.shape[1], mean, std, lr.coef_[0], float(lr.intercept_[0]), 0.5).probabilities(X[out])
+        probs[C] = p
         p = np.clip(p, 1e-6, 1 - 1e-6)
         loss[C] = round(float(-np.mean(y * np.log(p) + (~y) * np.log(1 - p))), 4)
-    return min(loss, key=loss.get), loss
+    C = min(loss, key=loss.get)
+    return C, loss, probs[C]
 
 
 def fit(queries: list[dict], preset: str, supervision: str, fitted_on: str,
@@ -120,13 +123,15 @@ def fit(queries: list[dict], preset: str, supervision: str, fitted_on: str,
     qs = [q for q in queries if q["answered"] and q["supervision"] == supervision]
     X = np.array([[q["evidence"].get(k, np.nan) for k in features] for q in qs], np.float64)
     y = np.array([q["right"] for q in qs], bool)
-    C, losses = choose_c(X, y, np.array([q["scene"] for q in qs]))
+    C, losses, p = choose_c(X, y, np.array([q["scene"] for q in qs]))
     mean, std, lr = _logistic(X, y, C)
     m = ConfidenceModel(preset, supervision, list(features), mean, std, lr.coef_[0], float(lr.intercept_[0]), 0.5,
                         f"{fitted_on}, C={C:g}")
-    p = m.probabilities(X)
+    # the threshold from the out-of-scene probabilities: on its own fit answers a model is surer
+    # than on a new scene, and a threshold read there lets more wrong answers through
     m.threshold = next((t for t in np.round(np.arange(0.0, 1.0, 0.01), 2)
                         if float(((p >= t) & ~y).mean()) <= MAX_WRONG), 0.99)
+    p = m.probabilities(X)
     for q, pq in zip(qs, p):
         q["confidence"], q["success"] = float(pq), bool(pq >= m.threshold)
     c = calibration(qs)["all"]

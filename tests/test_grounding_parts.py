@@ -155,12 +155,16 @@ def test_sight_gives_pixels_and_visibility_and_marks_off_image_points():
     depth = np.ones((64, 64))
     depth[56:64, 0:8] = 0.0                                 # a hole in the sensor depth (under the last point)
     pts = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -0.3], [5.0, 0.0, 0.0], [-0.3, -0.3, 0.0]])
-    on, seen, r, u = sight(pts, K, _camera_looking_down(0.0), depth, np.zeros(4))
-    np.testing.assert_array_equal(on, [True, True, False, True])
-    np.testing.assert_array_equal(seen, [True, False, False, False])   # hidden below, off-image, in the hole
-    assert (r[2], u[2]) == (-1, -1) and 0 <= r[0] < 64 and 0 <= u[0] < 64 and depth[r[3], u[3]] == 0.0
+    c2w = np.stack([_camera_looking_down(0.0), _camera_looking_down(0.3)])        # [2, 4, 4]
+    on, seen, r, u = sight(pts, np.stack([K, K]), c2w, [depth, np.ones((48, 64))], np.zeros(4))   # [2, 4] each
+    np.testing.assert_array_equal(on[0], [True, True, False, True])
+    np.testing.assert_array_equal(seen[0], [True, False, False, False])   # hidden below, off-image, in the hole
+    assert (r[0, 2], u[0, 2]) == (-1, -1) and 0 <= r[0, 0] < 64 and 0 <= u[0, 0] < 64 and depth[r[0, 3], u[0, 3]] == 0.0
+    # the second camera, 0.3 m along x over a smaller image, has the floor point 30 px further left
+    assert u[1, 0] == u[0, 0] - 30 and r[1, 0] == r[0, 0]
+    np.testing.assert_array_equal(seen[1], [True, False, False, False])   # the last one is off its 48 rows
     # a Gaussian as large as the gap to the surface reaches it
-    assert sight(pts[1:2], K, _camera_looking_down(0.0), depth, np.array([0.31]))[1][0]
+    assert sight(pts[1:2], K[None], c2w[:1], [depth], np.array([0.31]))[1][0, 0]
 
 
 def test_registration_border_measures_the_mask_to_depth_edge_offset():

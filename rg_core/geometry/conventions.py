@@ -145,12 +145,14 @@ def backproject(depth: np.ndarray, K: np.ndarray, c2w: np.ndarray | None = None)
 
 
 def project(points_world: np.ndarray, K: np.ndarray, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World points [N, 3] -> (pixel coords [N, 2] OpenCV, depth [N]) in the camera `c2w`."""
+    """World points [N, 3] -> (pixel coords [..., N, 2] OpenCV, depth [..., N]) in the cameras
+    `c2w` [..., 4, 4] with intrinsics K [..., 3, 3] (one camera or a batch of them)."""
     w2c = np.linalg.inv(c2w)
-    pc = points_world @ w2c[:3, :3].T + w2c[:3, 3]
-    z = pc[:, 2]
+    pc = points_world @ np.swapaxes(w2c[..., :3, :3], -1, -2) + w2c[..., None, :3, 3]   # [..., N, 3]
+    z = pc[..., 2]
+    f, c = K[..., None, [0, 1], [0, 1]], K[..., None, [0, 1], [2, 2]]                  # [..., 1, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        uv = np.stack([K[0, 0] * pc[:, 0] / z + K[0, 2], K[1, 1] * pc[:, 1] / z + K[1, 2]], axis=-1)
+        uv = f * pc[..., :2] / z[..., None] + c
     return uv, z
 
 

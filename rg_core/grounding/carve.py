@@ -106,22 +106,27 @@ def registration_border(offsets: np.ndarray, max_px: int = 3, min_pixels: int = 
     return int(min(max_px, max(1, round(float(np.median(o))))))
 
 
-def sight(points: np.ndarray, K: np.ndarray, cam_to_world: np.ndarray, depth: np.ndarray, tol_size: np.ndarray,
+def sight(points: np.ndarray, K: np.ndarray, cam_to_world: np.ndarray, depths, tol_size: np.ndarray,
           depth_tol_abs: float = 0.02, depth_tol_rel: float = 0.02) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """points [N, 3] world in one camera with sensor depth [h, w] -> (on [N] bool: projects onto the
-    image, seen [N] bool: the sensor depth there is within max(abs, rel * depth, tol_size) of the
-    point's, rows [N], cols [N] int64: its pixel, -1 off the image)."""
-    h, w = depth.shape
-    uv, z = project(points, np.asarray(K, np.float64), np.asarray(cam_to_world, np.float64))
-    front = z > 1e-6
-    u = np.full(len(points), -1, np.int64)
-    r = np.full(len(points), -1, np.int64)
-    u[front], r[front] = np.floor(uv[front]).astype(np.int64).T
-    on = front & (u >= 0) & (u < w) & (r >= 0) & (r < h)
+    """points [N, 3] world in V cameras (K [V, 3, 3], cam_to_world [V, 4, 4], sensor depths: V
+    arrays [h, w]) -> (on [V, N] bool: projects onto the image, seen [V, N] bool: the sensor depth
+    there is within max(abs, rel * depth, tol_size [N]) of the point's, rows [V, N], cols [V, N]
+    int64: its pixel, -1 off the image). One batched projection: a query asks this of ~30 views."""
+    V, N = len(depths), len(points)
+    uv, z = project(points, np.asarray(K, np.float64).reshape(V, 3, 3), np.asarray(cam_to_world, np.float64).reshape(V, 4, 4))
+    with np.errstate(invalid="ignore"):
+        front = (z > 1e-6) & np.isfinite(uv).all(-1)                                   # [V, N]
+        pix = np.where(front[..., None], np.floor(np.where(front[..., None], uv, 0.0)), -1).astype(np.int64)
+    u, r = pix[..., 0], pix[..., 1]
+    on = np.zeros((V, N), bool)
+    seen = np.zeros((V, N), bool)
+    for v, depth in enumerate(depths):
+        h, w = depth.shape
+        on[v] = front[v] & (u[v] >= 0) & (u[v] < w) & (r[v] >= 0) & (r[v] < h)
+        d = depth[r[v, on[v]], u[v, on[v]]]
+        tol = np.maximum(np.maximum(depth_tol_abs, depth_tol_rel * d), tol_size[on[v]])
+        seen[v, on[v]] = (d > 0) & (np.abs(z[v, on[v]] - d) <= tol)
     r[~on], u[~on] = -1, -1
-    d = np.zeros(len(points))
-    d[on] = depth[r[on], u[on]]
-    seen = on & (d > 0) & (np.abs(z - d) <= np.maximum(np.maximum(depth_tol_abs, depth_tol_rel * d), tol_size))
     return on, seen, r, u
 
 
@@ -142,10 +147,13 @@ def mask_votes(points: np.ndarray, views: list[MaskView], sizes: np.ndarray | No
         raise ValueError(f"mask_votes: sizes must be [N] = [{len(pts)}], got {list(np.shape(sizes))}")
     inside, outside, projected, on_image = (np.zeros(len(pts), np.int32) for _ in range(4))
     for v in views:
-        h, w = v.mask.shape
-        if v.depth.shape != (h, w):
-            raise ValueError(f"mask_votes: depth {v.depth.shape} and mask {(h, w)} differ")
-        on, seen, r, u = sight(pts, v.K, v.cam_to_world, v.depth, tol_size, depth_tol_abs, depth_tol_rel)
+        if v.depth.shape != v.mask.shape:
+            raise ValueError(f"mask_votes: depth {v.depth.shape} and mask {v.mask.shape} differ")
+    if not views:
+        return MaskVotes(inside, outside, projected, on_image)
+    ons, seens, rs, us = sight(pts, np.stack([v.K for v in views]), np.stack([v.cam_to_world for v in views]),
+                               [v.depth for v in views], tol_size, depth_tol_abs, depth_tol_rel)
+    for v, on, seen, r, u in zip(views, ons, seens, rs, us):
         m = v.mask.astype(np.uint8)
         if border_px > 0:
             m = cv2.dilate(m, np.ones((2 * border_px + 1,) * 2, np.uint8))

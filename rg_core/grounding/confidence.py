@@ -160,23 +160,25 @@ def view_agreement(g, ref, ids: np.ndarray, target: torch.Tensor, other: torch.T
     tol = 2.0 * gs.scales.detach()[torch.from_numpy(pick)].max(1).values.numpy()      # [P] as carve.mask_votes
     sup = g.mapper.supervision.by_keyframe
     border = g.vote_border()
+    cands = [c for c in ref.candidates if c.keyframe.index != ref.keyframe.index
+             and sup[c.keyframe.index].masks[c.index].shape == tuple(c.keyframe.depth.shape)]
+    if not cands:
+        return math.nan, 0, math.nan
+    kfs = [c.keyframe for c in cands]
+    ons, seens, rs, us = sight(pts, np.stack([kf.K for kf in kfs]), np.stack([kf.cam_to_world for kf in kfs]),
+                               [kf.depth.numpy() for kf in kfs], tol)                  # [V, P] each
     shares, margins = [], []
-    for c in ref.candidates:
-        kf = c.keyframe
-        s = sup[kf.index]
-        mask = s.masks[c.index]
-        if kf.index == ref.keyframe.index or mask.shape != tuple(kf.depth.shape):
-            continue
-        on, seen, r, u = sight(pts, kf.K, kf.cam_to_world, kf.depth.numpy(), tol)
+    for c, seen, r, u in zip(cands, seens, rs, us):
         if seen.sum() < 0.2 * len(pts):
             continue
-        m = mask.astype(np.uint8)
+        s = sup[c.keyframe.index]
+        m = s.masks[c.index].astype(np.uint8)
         if border > 0:
             m = cv2.dilate(m, np.ones((2 * border + 1,) * 2, np.uint8))
         shares.append(float((m[r[seen], u[seen]] > 0).mean()))
         held = s.masks[:, r[seen], u[seen]].sum(1)                                    # [M] seen points per mask
         best = np.flatnonzero(held == held.max())
-        j = int(best[np.argmin(s.masks[best].sum((1, 2)))])
+        j = int(best[np.argmin(s.masks[best].sum((1, 2)))]) if len(best) > 1 else int(best[0])
         e = torch.nn.functional.normalize(s.embeddings[j].float(), dim=-1)
         margins.append(float(e @ target) - (float((other @ e).max()) if other is not None else -1.0))
     if not shares:
