@@ -180,11 +180,32 @@ def test_regularisation_is_chosen_out_of_scene():
     scenes = np.repeat(np.arange(6), 40)
     y = rng.random(len(scenes)) < 0.3
     noise = rng.normal(size=(len(scenes), 5))
-    c, loss = bc.choose_c(noise, y, scenes)
+    c, loss, p = bc.choose_c(noise, y, scenes)
     assert c == min(bc.C_GRID) and loss[c] == min(loss.values()), loss
+    assert p.shape == y.shape and ((p > 0) & (p < 1)).all()
     signal = np.column_stack([np.where(y, 1.0, -1.0) + 0.3 * rng.normal(size=len(y)), noise])
-    c, loss = bc.choose_c(signal, y, scenes)
+    c, loss, p = bc.choose_c(signal, y, scenes)
     assert c > min(bc.C_GRID) and loss[c] == min(loss.values()) and loss[c] < 0.3, loss
+    assert auroc(p, y) > 0.95       # each scene scored by a model that never saw it
+
+
+def test_fit_reads_its_threshold_from_out_of_scene_probabilities():
+    bc = _bench_confidence()
+    rng = np.random.default_rng(2)
+    qs = []
+    for i in range(240):
+        right = bool(rng.random() < 0.3)
+        ev = {k: float(rng.normal()) for k in FEATURES}
+        ev["view_agreement"] = (1.0 if right else 0.0) + 0.8 * float(rng.normal())
+        qs.append({"scene": f"s{i % 6}", "object": f"o{i}", "kind": "explicit", "answered": True,
+                   "supervision": "default", "right": right, "evidence": ev})
+    m = bc.fit(qs, "test", "default", "six made-up scenes")
+    assert m.features == list(FEATURES) and m.metrics["auroc"] > 0.75
+    X = np.array([[q["evidence"][k] for k in FEATURES] for q in qs])
+    y = np.array([q["right"] for q in qs])
+    _, _, p = bc.choose_c(X, y, np.array([q["scene"] for q in qs]))
+    assert ((p >= m.threshold) & ~y).mean() <= bc.MAX_WRONG                 # out of scene: at most 8 %
+    assert m.threshold == 0.0 or ((p >= m.threshold - 0.01) & ~y).mean() > bc.MAX_WRONG   # and the lowest such
 
 
 def test_auroc_interval_resamples_objects():
