@@ -123,14 +123,14 @@ def fit(queries: list[dict], preset: str, supervision: str, fitted_on: str,
     qs = [q for q in queries if q["answered"] and q["supervision"] == supervision]
     X = np.array([[q["evidence"].get(k, np.nan) for k in features] for q in qs], np.float64)
     y = np.array([q["right"] for q in qs], bool)
-    C, losses, p = choose_c(X, y, np.array([q["scene"] for q in qs]))
+    C, losses, p_out = choose_c(X, y, np.array([q["scene"] for q in qs]))
     mean, std, lr = _logistic(X, y, C)
     m = ConfidenceModel(preset, supervision, list(features), mean, std, lr.coef_[0], float(lr.intercept_[0]), 0.5,
                         f"{fitted_on}, C={C:g}")
     # the threshold from the out-of-scene probabilities: on its own fit answers a model is surer
     # than on a new scene, and a threshold read there lets more wrong answers through
     m.threshold = next((t for t in np.round(np.arange(0.0, 1.0, 0.01), 2)
-                        if float(((p >= t) & ~y).mean()) <= MAX_WRONG), 0.99)
+                        if float(((p_out >= t) & ~y).mean()) <= MAX_WRONG), 0.99)
     p = m.probabilities(X)
     for q, pq in zip(qs, p):
         q["confidence"], q["success"] = float(pq), bool(pq >= m.threshold)

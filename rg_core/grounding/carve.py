@@ -106,6 +106,17 @@ def registration_border(offsets: np.ndarray, max_px: int = 3, min_pixels: int = 
     return int(min(max_px, max(1, round(float(np.median(o))))))
 
 
+SIZE_TOL = 2.0   # a Gaussian reaches the sensed surface within this many of its largest std devs
+
+
+def dilated(mask: np.ndarray, border_px: int) -> np.ndarray:
+    """mask [h, w] -> uint8 [h, w] grown by border_px pixels (a square), as it is when 0."""
+    import cv2
+
+    m = mask.astype(np.uint8)
+    return cv2.dilate(m, np.ones((2 * border_px + 1,) * 2, np.uint8)) if border_px > 0 else m
+
+
 def sight(points: np.ndarray, K: np.ndarray, cam_to_world: np.ndarray, depths, tol_size: np.ndarray,
           depth_tol_abs: float = 0.02, depth_tol_rel: float = 0.02) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """points [N, 3] world in V cameras (K [V, 3, 3], cam_to_world [V, 4, 4], sensor depths: V
@@ -131,14 +142,12 @@ def sight(points: np.ndarray, K: np.ndarray, cam_to_world: np.ndarray, depths, t
 
 
 def mask_votes(points: np.ndarray, views: list[MaskView], sizes: np.ndarray | None = None, border_px: int = 0,
-               depth_tol_abs: float = 0.02, depth_tol_rel: float = 0.02, size_tol: float = 2.0) -> MaskVotes:
+               depth_tol_abs: float = 0.02, depth_tol_rel: float = 0.02, size_tol: float = SIZE_TOL) -> MaskVotes:
     """points [N, 3] world, sizes [N] (largest std dev, m) -> how many views see each point inside
     and outside their mask of the target (masks dilated by `border_px`), and in how many views it
     projects into the mask or anywhere on the image, seen or hidden.
     A view sees a point when the sensor depth there is within max(abs, rel * depth, size_tol * size)
     of the point's (`sight`): a Gaussian that large reaches the surface (one sunk into the table is the table)."""
-    import cv2
-
     pts = np.asarray(points, np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"mask_votes: points must be [N, 3], got {list(pts.shape)}")
@@ -154,9 +163,7 @@ def mask_votes(points: np.ndarray, views: list[MaskView], sizes: np.ndarray | No
     ons, seens, rs, us = sight(pts, np.stack([v.K for v in views]), np.stack([v.cam_to_world for v in views]),
                                [v.depth for v in views], tol_size, depth_tol_abs, depth_tol_rel)
     for v, on, seen, r, u in zip(views, ons, seens, rs, us):
-        m = v.mask.astype(np.uint8)
-        if border_px > 0:
-            m = cv2.dilate(m, np.ones((2 * border_px + 1,) * 2, np.uint8))
+        m = dilated(v.mask, border_px)
         hit = np.zeros(len(pts), bool)
         hit[on] = m[r[on], u[on]] > 0
         inside += seen & hit

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .carve import sight
+from .carve import SIZE_TOL, dilated, sight
 from .relevancy import CANONICAL, relevancy_pca
 
 DATA = Path(__file__).resolve().parents[1] / "perception" / "data"
@@ -46,7 +46,7 @@ EVIDENCE = {
     "group_similarity": "instance-feature similarity of the group to the peak",
     "reasoner": "reasoner confidence",
 }
-FEATURES = tuple(k for k in EVIDENCE)   # what a model may read; views_seen and the background are reported only
+FEATURES = tuple(EVIDENCE)   # what a model may read; views_seen and the background are reported only
 
 
 @dataclass
@@ -150,14 +150,12 @@ def view_agreement(g, ref, ids: np.ndarray, target: torch.Tensor, other: torch.T
     best mask of the target, how many such keyframes, and the mean name margin (similarity to
     `target` [D] less the best of `other` [O, D]) of the mask in each that holds most of the seen
     ones (the smaller of equals). (nan, 0, nan) when none sees it."""
-    import cv2
-
     if not len(ids):
         return math.nan, 0, math.nan
     gs = g.mapper.gaussians
     pick = ids if len(ids) <= AGREE_POINTS else ids[np.linspace(0, len(ids) - 1, AGREE_POINTS).astype(np.int64)]
     pts = gs.means.detach()[torch.from_numpy(pick)].numpy().astype(np.float64)        # [P, 3] world
-    tol = 2.0 * gs.scales.detach()[torch.from_numpy(pick)].max(1).values.numpy()      # [P] as carve.mask_votes
+    tol = SIZE_TOL * gs.scales.detach()[torch.from_numpy(pick)].max(1).values.numpy()  # [P] as carve.mask_votes
     sup = g.mapper.supervision.by_keyframe
     border = g.vote_border()
     cands = [c for c in ref.candidates if c.keyframe.index != ref.keyframe.index
@@ -172,9 +170,7 @@ def view_agreement(g, ref, ids: np.ndarray, target: torch.Tensor, other: torch.T
         if seen.sum() < 0.2 * len(pts):
             continue
         s = sup[c.keyframe.index]
-        m = s.masks[c.index].astype(np.uint8)
-        if border > 0:
-            m = cv2.dilate(m, np.ones((2 * border + 1,) * 2, np.uint8))
+        m = dilated(s.masks[c.index], border)
         shares.append(float((m[r[seen], u[seen]] > 0).mean()))
         held = s.masks[:, r[seen], u[seen]].sum(1)                                    # [M] seen points per mask
         best = np.flatnonzero(held == held.max())
