@@ -170,6 +170,17 @@ def test_new_gaussians_start_from_neighbours_and_pruning_keeps_rows(synth_scene)
     torch.testing.assert_close(f.latents[-4:], want)
     assert f.latents[-4:].abs().sum() > 0
     assert torch.equal(f.latents[:-4], old_lat)
+    # A second append writes into the room the first one left: old rows are neither copied nor changed,
+    # and the field's revision (what per-row caches of old rows are keyed by) stays.
+    rev, ptr, lat = f.revision, f.latents.data_ptr(), f.latents.clone()
+    far = old_means[4:6] + torch.tensor([5.0, 0.0, 0.0])                    # no old Gaussian within reach
+    g.append(far, torch.full((2,), 0.003), torch.rand(2, 3), 0.9)
+    mapper.optim.sync()
+    assert f.sync() == 2 and f.revision == rev and f.latents.data_ptr() == ptr
+    assert torch.equal(f.latents[:-2], lat) and len(f._m) == len(f._v) == len(f._t) == len(g)
+    d = torch.cdist(far.double(), g.means.detach()[:-2].double())
+    torch.testing.assert_close(f.latents[-2:], lat[d.topk(3, largest=False).indices].mean(1))
+    old_lat = lat
     # Pruning shifts rows; the field re-associates by centre (as the mapper reports prunes).
     lat = f.latents.clone()
     keep = torch.ones(len(g), dtype=torch.bool)
@@ -177,8 +188,10 @@ def test_new_gaussians_start_from_neighbours_and_pruning_keeps_rows(synth_scene)
     g.keep(keep)
     mapper.optim.keep(keep)
     mapper.totals["pruned"] += int((~keep).sum())
+    rev = f.revision
     f.sync()
     assert f.latents.shape == (len(g), 32) and torch.equal(f.latents, lat[keep])
+    assert f.revision == rev + 1
     # Eviction at the map's bound (Mapper.evict) is followed the same way.
     lat, means = f.latents.clone(), g.means.detach().clone()
     kf = mapper.keyframes[0]

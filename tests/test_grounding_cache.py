@@ -99,3 +99,36 @@ def test_map_and_field_changes_invalidate(own_map, synth_scene):
         assert cached.cache.invalidations == before + int(r.keyframe), r.reason
         explained += not r.keyframe
     assert explained > 0
+
+
+def test_growth_elsewhere_keeps_vocabulary_and_the_clusters_asked(own_map, synth_scene):
+    """Gaussians appended far from every object (a new part of the room): the vocabulary and the
+    clusters of a region already asked stay (the same objects, not recomputed), the answers equal an
+    uncached Grounder's; training the field empties the clusters, refinement the map's tables."""
+    m, embed = own_map
+    names = [o.name for o in synth_scene.objects]
+    cached, plain = grounders(m, embed, names)
+    g = m.gaussians
+
+    def grow(n: int, dx: float) -> None:
+        sel = torch.arange(n) % len(g)
+        g.append(g.means.detach()[sel] + torch.tensor([dx, 0.0, 0.0]), g.scales.detach()[sel],
+                 g.colors.detach()[sel], 0.9)
+        m.optim.sync()
+
+    grow(len(g) // 4, 6.0)                        # far enough for the query's region to leave it out
+    same(cached.ground(names[0], mode="explicit"), plain.ground(names[0], mode="explicit"))
+    clusters, vocab = dict(cached.cache.tables["clusters"]), dict(cached.cache.tables["vocabulary"])
+    groups = dict(cached.cache.tables["groups"])
+    assert clusters and vocab and groups
+    rev = m.field.revision
+    grow(50, 9.0)
+    same(cached.ground(names[0], mode="explicit"), plain.ground(names[0], mode="explicit"))
+    assert m.field.revision == rev
+    assert not any(cached.cache.tables["groups"].get(k) is v for k, v in groups.items())   # the map's: made anew
+    assert all(cached.cache.tables["clusters"].get(k) is v for k, v in clusters.items())
+    assert all(cached.cache.tables["vocabulary"].get(k) is v for k, v in vocab.items())
+    m.field.train(iters=2)
+    same(cached.ground(names[0], mode="explicit"), plain.ground(names[0], mode="explicit"))
+    assert not any(cached.cache.tables["clusters"].get(k) is v for k, v in clusters.items())
+    assert all(cached.cache.tables["vocabulary"].get(k) is v for k, v in vocab.items())

@@ -205,6 +205,28 @@ def test_registration_border_measures_the_mask_to_depth_edge_offset():
         depth_edges(np.ones(5))
 
 
+def test_nearest_is_exact_for_local_far_and_degenerate_queries():
+    """geometry.points.nearest builds its tree over the queries' neighbourhood only; it must give the
+    brute-force k nearest wherever the queries lie (inside the set, beyond its edge, everywhere)."""
+    from rg_core.geometry.points import nearest
+
+    rng = np.random.default_rng(3)
+    pts = (rng.random((20000, 3)) * [4.0, 4.0, 1.0]).astype(np.float32)
+    cases = {"local": [1.0, 1.0, 0.5] + rng.random((50, 3)) * 0.1,
+             "beyond the edge": [9.0, 2.0, 0.5] + rng.random((5, 3)) * 0.1,
+             "everywhere": rng.random((40, 3)) * [4.0, 4.0, 1.0],
+             "on points": pts[:7].astype(np.float64)}
+    for name, q in cases.items():
+        d, idx = nearest(pts, q, 6)
+        full = np.linalg.norm(q[:, None, :] - pts[None].astype(np.float64), axis=-1)    # [Q, N]
+        want = np.sort(full, 1)[:, :6]
+        np.testing.assert_allclose(d, want, rtol=0, atol=1e-12, err_msg=name)
+        np.testing.assert_allclose(np.take_along_axis(full, idx, 1), want, rtol=0, atol=1e-12, err_msg=name)
+    d, idx = nearest(pts[:3], pts[:2], 8)                       # k above the set's size: all of it
+    assert idx.shape == (2, 3) and d[:, 0].max() == 0.0
+    assert nearest(pts[:0], pts[:2], 3)[1].shape == (2, 0) and nearest(pts, pts[:0], 3)[0].shape == (0, 3)
+
+
 def test_connected_to_keeps_the_anchor_piece():
     from rg_core.geometry.points import map_spacing
     from rg_core.grounding.boxes import connected_to

@@ -18,6 +18,7 @@ import torch
 
 from ..config import FieldConfig
 from ..geometry.conventions import scale_intrinsics
+from ..geometry.points import nearest
 from ..render import frustum_cull, rasterize
 from .converge import check, holdout_pixels
 from .losses import instance_loss, language_loss, language_targets, shares_group
@@ -55,12 +56,15 @@ class FeatureField:
         self.latents = torch.randn(n, c.latent_dim, generator=self._rng) * c.init_std  # [N, D]
         self._m, self._v = torch.zeros(n, c.latent_dim), torch.zeros(n, c.latent_dim)
         self._t = torch.zeros(n, dtype=torch.long)  # per-row Adam step count (rows update sparsely)
+        self._spare: dict[str, torch.Tensor] = {}  # row tensor name -> its storage with room to grow
         self._means = mapper.gaussians.means.detach().clone()  # centres at the last sync
         self._pruned = self._pruned_count()
         self.scale_tf: QuantileScale | None = None
         self._pca = None  # (version, mean, components) the language output is expressed in
         self._masks: dict[int, tuple] = {}  # kf -> (id(sup), masks [M, th tw], scales [M], ray weights [th tw])
         self.steps, self.seconds = 0, 0.0
+        self.revision = 0  # bumped whenever an existing row's output can change (training, pruning, scale refit);
+        #                    appending rows for new Gaussians keeps it, so per-row results of old rows stay valid
         self.convergence = None  # converge.Convergence: the stop test on the current supervision
         self.stop: dict | None = None  # how the last train() ended (converge.describe says it in words)
         mapper.field = self
@@ -82,14 +86,24 @@ class FeatureField:
         return None if "pruned" not in t else t["pruned"] + t.get("evicted", 0)
 
     def _neighbour_latents(self, points: torch.Tensor) -> torch.Tensor:  # [Q, 3] -> [Q, D]
-        from scipy.spatial import cKDTree
-
         k = min(self.cfg.init_neighbours, len(self._means))
         if k < 1:
             return torch.randn(len(points), self.cfg.latent_dim, generator=self._rng) * self.cfg.init_std
-        _, idx = cKDTree(self._means.double().numpy()).query(points.double().numpy(), k=k)
-        idx = torch.from_numpy(np.asarray(idx, np.int64).reshape(len(points), k))
-        return self.latents[idx].mean(1)
+        _, idx = nearest(self._means.numpy(), points.numpy(), k)
+        return self.latents[torch.from_numpy(idx)].mean(1)
+
+    def _append_rows(self, name: str, rows: torch.Tensor) -> None:
+        """Append rows to the [N, ...] tensor `name` in spare capacity (grown 1.25x when full), so a
+        map growing by a frame's Gaussians does not copy every old row each time."""
+        cur = getattr(self, name)
+        n, k = len(cur), len(rows)
+        base = self._spare.get(name)
+        if base is None or base.data_ptr() != cur.data_ptr() or len(base) < n + k:
+            base = torch.empty((max(n + k, int(1.25 * (n + k))),) + tuple(cur.shape[1:]), dtype=cur.dtype)
+            base[:n] = cur
+            self._spare[name] = base
+        base[n:n + k] = rows
+        setattr(self, name, base[:n + k])
 
     @torch.no_grad()
     def sync(self) -> int:
@@ -105,11 +119,11 @@ class FeatureField:
                 return 0
             D = self.cfg.latent_dim
             if pruned is not None and pruned == self._pruned and N > old:  # append-only: rows kept
-                new = self._neighbour_latents(means[old:])
-                self.latents = torch.cat([self.latents, new])
+                self._append_rows("latents", self._neighbour_latents(means[old:]))
                 z = torch.zeros(N - old, D)
-                self._m, self._v = torch.cat([self._m, z]), torch.cat([self._v, z])
-                self._t = torch.cat([self._t, torch.zeros(N - old, dtype=torch.long)])
+                self._append_rows("_m", z)
+                self._append_rows("_v", z)
+                self._append_rows("_t", torch.zeros(N - old, dtype=torch.long))
                 fresh = N - old
             else:  # pruned (rows shifted) or unknown history: re-associate by centre
                 from scipy.spatial import cKDTree
@@ -129,6 +143,7 @@ class FeatureField:
                 elif N:
                     lat = self._neighbour_latents(means)
                 self.latents, self._m, self._v, self._t = lat, m, v, t
+                self.revision += 1
             self._means, self._pruned = means.clone(), pruned
             return fresh
 
@@ -155,6 +170,7 @@ class FeatureField:
         scales = np.concatenate([sset.by_keyframe[kf.index].scales for kf in kfs])
         if self.scale_tf is None or len(scales) >= 1.5 * self.scale_tf.n_fit:
             self.scale_tf = QuantileScale.fit(torch.from_numpy(scales.astype(np.float64)), self.cfg.scale_knots)
+            self.revision += 1
         self._follow_pca(sset.pca)
         return None
 
@@ -170,6 +186,8 @@ class FeatureField:
             A = pca.components @ comps.T  # [k', k]
             last.weight.copy_(A @ last.weight)
             last.bias.copy_(A @ last.bias + pca.components @ (mean - pca.mean))
+        if self._pca is None or self._pca[0] != ipca.version:
+            self.revision += 1
         self._pca = (ipca.version, pca.mean.clone(), pca.components.clone())
 
     def _train_view(self, kf):
@@ -262,6 +280,7 @@ class FeatureField:
             # Adam on the latent rows with a gradient only: Gaussians the step did not see stay unchanged.
             seen = sparse_adam_step(self.latents, self._m, self._v, self._t, lat.grad, c.lr_latents)
             self.steps += 1
+            self.revision += 1
             dt = time.perf_counter() - t0
             self.seconds += dt
             return {"loss": float(loss.detach()), "language": float(l_lang.detach()), "instance": float(l_in.detach()), "keyframe": kf.index,

@@ -1,13 +1,17 @@
-"""What a query computes from the map alone, kept between queries and dropped when the map or the
-feature field changes.
+"""What a query computes from the map alone, kept between queries and dropped when what it is made
+from changes.
 
-The key is the identity and in-place version counter of the tensors the results are made from
-(Gaussian parameters, field latents) plus the counters that say the rest changed (Gaussians,
-keyframes, supervision masks and PCA basis, field training steps). The mapper's optimiser
-replaces its tensors on every step and pruning or adding Gaussians makes new ones, so idle
-refinement, which changes neither the number of Gaussians nor the keyframes, still invalidates;
-in-place edits bump torch's `_version`. A frame the map already explains changes none of these
-and keeps the caches (a robot streaming frames of a mapped room asks warm). Identity is held by weak references: a freed tensor whose
+Each table has a scope, the state it is made from:
+- "map": the Gaussians (identity and in-place version of their tensors, their count), the field
+  and the supervision: renders, clusters over the whole map, spacing, background, scene graph;
+- "supervision": the keyframes and their masks, embeddings and PCA basis: vocabulary, up
+  direction, registration border; a map that grows or is refined keeps them;
+- "field": the field's rows (its revision: training, pruning, a scale or PCA refit): clusters of
+  one region, keyed by the Gaussians in it, which the map growing elsewhere leaves valid.
+The mapper's optimiser replaces its tensors on every step and pruning or adding Gaussians makes new
+ones, so idle refinement still empties the "map" tables; in-place edits bump torch's `_version`. A
+frame the map already explains changes none of these and keeps every table (a robot streaming
+frames of a mapped room asks warm). Identity is held by weak references: a freed object whose
 address is reused never passes for the old one.
 """
 from __future__ import annotations
@@ -19,37 +23,47 @@ import torch
 
 
 class TensorState:
-    """The identity and in-place version of some tensors at one moment."""
+    """The identity of some objects (and the in-place version of those that are tensors) at one moment."""
 
-    def __init__(self, tensors: tuple[torch.Tensor, ...]):
-        self.refs = tuple(weakref.ref(t) for t in tensors)
-        self.versions = tuple(t._version for t in tensors)
+    def __init__(self, objects: tuple):
+        self.refs = tuple(weakref.ref(t) for t in objects)
+        self.versions = tuple(getattr(t, "_version", None) for t in objects)
 
-    def same(self, tensors: tuple[torch.Tensor, ...]) -> bool:
-        return len(tensors) == len(self.refs) and all(
-            r() is t and t._version == v for r, t, v in zip(self.refs, tensors, self.versions))
+    def same(self, objects: tuple) -> bool:
+        return len(objects) == len(self.refs) and all(
+            r() is t and getattr(t, "_version", None) == v for r, t, v in zip(self.refs, objects, self.versions))
 
 
 class MapCache:
-    """Named LRU tables valid for one map/field state; `check(tensors, counters)` empties them all
-    when either changed. `enabled=False` keeps nothing (the uncached baseline and its tests)."""
+    """Named LRU tables, each valid for one state of its scope (SCOPE); `check({scope: (objects,
+    counters)})` empties a scope's tables when its objects or counters changed. `enabled=False`
+    keeps nothing (the uncached baseline and its tests)."""
+
+    SCOPE = {"groups": "map", "renders": "map", "spacing": "map", "background": "map", "graph": "map",
+             "vocabulary": "supervision", "border": "supervision", "up": "supervision", "clusters": "field"}
 
     def __init__(self, enabled: bool = True, sizes: dict[str, int] | None = None):
         self.enabled = enabled
-        self.sizes = {"groups": 16, "renders": 8, "spacing": 1, "border": 1, "vocabulary": 1, "background": 8,
-                      "graph": 1, "up": 1, **(sizes or {})}
+        self.sizes = {"groups": 16, "clusters": 16, "renders": 8, "spacing": 1, "border": 1, "vocabulary": 1,
+                      "background": 8, "graph": 1, "up": 1, **(sizes or {})}
         self.tables: dict[str, OrderedDict] = {k: OrderedDict() for k in self.sizes}
-        self._tensors: TensorState | None = None
-        self._counters: tuple | None = None
+        self._states: dict[str, tuple[TensorState, tuple]] = {}
         self.hits = self.misses = self.invalidations = 0
 
-    def check(self, tensors: tuple[torch.Tensor, ...], counters: tuple) -> None:
-        if self._tensors is not None and self._counters == counters and self._tensors.same(tensors):
-            return
-        if any(self.tables.values()):
-            self.invalidations += 1
-        self.clear()
-        self._tensors, self._counters = TensorState(tensors), counters
+    def check(self, scopes: dict[str, tuple[tuple, tuple]]) -> None:
+        """scopes: {scope: (objects, counters)} as they are now; one invalidation counted per call
+        that emptied something."""
+        emptied = False
+        for scope, (objects, counters) in scopes.items():
+            st = self._states.get(scope)
+            if st is not None and st[1] == counters and st[0].same(objects):
+                continue
+            for name, t in self.tables.items():
+                if self.SCOPE.get(name, "map") == scope and t:
+                    emptied = True
+                    t.clear()
+            self._states[scope] = (TensorState(objects), counters)
+        self.invalidations += emptied
 
     def clear(self) -> None:
         for t in self.tables.values():

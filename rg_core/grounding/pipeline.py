@@ -6,6 +6,7 @@ and the FeatureField, so a node can keep mapping and training between queries.
 """
 from __future__ import annotations
 
+import hashlib
 import logging
 import time
 
@@ -164,22 +165,26 @@ class Grounder:
         return list(self.cache.get("vocabulary", key, make))
 
     def _check_cache(self) -> None:
-        """Empty the map caches when the map, its supervision or the field changed since they were filled."""
+        """Empty the cache tables whose map, supervision or field state changed since they were
+        filled (rg_core/grounding/cache.py: scopes)."""
         m, f = self.mapper, self.field
         g = m.gaussians
-        tensors = (g.means, g.log_scales, g.quats, g.opacity_logits)
         sset = m.supervision
-        counters = (len(g), len(m.keyframes), m.keyframes[-1].index if m.keyframes else -1, id(sset))
+        sup = (len(m.keyframes), m.keyframes[-1].index if m.keyframes else -1, id(sset))
         if sset is not None:
-            counters += (len(sset.by_keyframe), sum(len(s.embeddings) for s in sset.by_keyframe.values()),
-                         getattr(sset.pca, "version", None), id(sset.pca.pca))
+            sup += (len(sset.by_keyframe), sum(len(s.embeddings) for s in sset.by_keyframe.values()),
+                    getattr(sset.pca, "version", None), id(sset.pca.pca))
+        tensors = (g.means, g.log_scales, g.quats, g.opacity_logits)
+        rows: tuple = ()
         if f is not None:
             if len(f.latents) != len(g):
                 f.sync()  # latents follow Gaussians added or pruned since the last training step
             tensors += (f.latents,)
-            counters += (id(f), f.steps, f._pca[0] if getattr(f, "_pca", None) is not None else None,
-                         id(f.scale_tf))
-        self.cache.check(tensors, counters)
+            rows = (id(f), f.revision, f.steps, f._pca[0] if getattr(f, "_pca", None) is not None else None,
+                    id(f.scale_tf))
+        scopes = {"map": (tensors, (len(g),) + sup + rows), "supervision": ((), sup),
+                  "field": ((f,) if f is not None else (), rows)}
+        self.cache.check(scopes)
 
     # ------------------------------------------------------------------------------ checks
 
@@ -206,23 +211,27 @@ class Grounder:
         N = len(self.mapper.gaussians)
         key = (round(scale, 4), N, None if region is None else np.packbits(region).tobytes())
 
-        def make() -> Groups:
+        def cluster(idx: torch.Tensor | None) -> Groups:
             g = self.gcfg
-            idx = None if region is None else torch.from_numpy(np.nonzero(region)[0])   # [M]
             with torch_threads(self._outer_threads):
                 feats = self.field.gaussian_instance(scale, idx)                # [N or M, Di]: the region's only
+            return cluster_instances(feats, g.max_cluster_points, g.min_cluster_size, g.cluster_eps,
+                                     seed=g.seed, method=g.cluster_method)
+
+        def make() -> Groups:
             if region is None:
-                out = cluster_instances(feats, g.max_cluster_points, g.min_cluster_size, g.cluster_eps,
-                                        seed=g.seed, method=g.cluster_method)
-            else:
-                sub = cluster_instances(feats, g.max_cluster_points, g.min_cluster_size,
-                                        g.cluster_eps, seed=g.seed, method=g.cluster_method)
-                labels = np.full(N, -1, np.int64)
-                labels[idx.numpy()] = sub.labels
-                full = torch.zeros(N, feats.shape[1], dtype=feats.dtype)
-                full[idx] = sub.features
-                out = Groups(labels, sub.centres, sub.clustered, sub.seconds, sub.radius, full)
-            return out
+                return cluster(None)
+            idx = np.nonzero(region)[0]                                         # [M]
+            # The region's clusters depend on its Gaussians' field rows only: kept while the map grows
+            # elsewhere (appended rows leave old ones as they were; cache.py, scope "field").
+            digest = hashlib.blake2b(idx.astype(np.int64).tobytes(), digest_size=16).digest()
+            sub = self.cache.get("clusters", (round(scale, 4), len(idx), digest),
+                                 lambda: cluster(torch.from_numpy(idx)))
+            labels = np.full(N, -1, np.int64)
+            labels[idx] = sub.labels
+            full = torch.zeros(N, sub.features.shape[1], dtype=sub.features.dtype)
+            full[torch.from_numpy(idx)] = sub.features
+            return Groups(labels, sub.centres, sub.clustered, sub.seconds, sub.radius, full)
         return self.cache.get("groups", key, make)
 
     def region(self, kf, mask: np.ndarray, depth: torch.Tensor, alpha: torch.Tensor, scale: float) -> np.ndarray | None:
