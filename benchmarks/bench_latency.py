@@ -3,7 +3,7 @@ the Python API use it), per stage, for maps of 2k / 20k / 100k Gaussians, explic
 queries; this code against a baseline measured in the same run (the machine may be shared).
 
     python benchmarks/bench_latency.py --map MAP --scene SCENE [--baseline-code DIR] [--sizes 2000 20000 100000]
-                                       [--tile]
+                                       [--tile] [--grow 3]
                                        [--cold-repeats 2] [--out DIR] [--json] [--record]
 
 MAP: a map with a trained field (`rg demo` writes one: rg_demo/scene.rgmap; or rg map --supervise
@@ -18,7 +18,9 @@ code; without it the baseline is this code with the Grounder's map caches off (c
 Cold: per query a new process: `python -m rg_core.cli ground MAP QUERY --mode M --json` (wall),
 and a child that reports its import, load_map and ground stages. Warm: one process per code and
 size; one warm-up query, then every query twice ("first": the first time the object is asked,
-"repeat": asked again); median and p95 over both rounds and per round.
+"repeat": asked again); median and p95 over both rounds and per round. --grow K: then K times
+a strip of 1 % more Gaussians beyond the map's edge (the field kept, as between two trainings in
+the node) and every query asked once after each ("after growth": what the caches keep of a growing map).
 Writes OUT/latency.json, OUT/latency.md (tables) and OUT/latency.png.
 """
 from __future__ import annotations
@@ -68,7 +70,21 @@ def child_cold(map_path: str, query: str, mode: str) -> dict:
             "stages": r.timings, "success": r.success, "target": r.target, "modules": heavy}
 
 
-def child_warm(map_path: str, queries: list, cache: bool | None) -> dict:
+def grow_map(m, frac: float = 0.01, step: float = 0.3) -> int:
+    """A new strip of room beyond the map's +x edge: copies of the `frac` of Gaussians that lie
+    furthest along x, `step` m further on (what a robot driving on adds). Returns how many."""
+    import torch
+
+    g = m.gaussians
+    k = max(1, int(frac * len(g)))
+    sel = g.means.detach()[:, 0].topk(k).indices
+    g.append(g.means.detach()[sel] + torch.tensor([step, 0.0, 0.0]), g.scales.detach()[sel],
+             g.colors.detach()[sel], 0.9)
+    m.optim.sync()
+    return k
+
+
+def child_warm(map_path: str, queries: list, cache: bool | None, grow: int = 0) -> dict:
     import torch  # noqa: F401
 
     from rg_core.config import RGConfig
@@ -87,6 +103,15 @@ def child_warm(map_path: str, queries: list, cache: bool | None) -> dict:
             rows.append({"round": rnd, "query": q, "mode": mode, "seconds": time.perf_counter() - t,
                          "stages": r.timings, "target": r.target, "right": r.target == expect,
                          "success": r.success, "ids": int(sum(len(o.gaussian_ids) for o in r.objects))})
+    for step in range(grow):   # the map grows between asks, the field stays: "grown" asks
+        added = grow_map(m)
+        for q, mode, expect in queries:
+            t = time.perf_counter()
+            r = g.ground(q, mode=mode)
+            rows.append({"round": "grown", "query": q, "mode": mode, "seconds": time.perf_counter() - t,
+                         "stages": r.timings, "target": r.target, "right": r.target == expect,
+                         "success": r.success, "ids": int(sum(len(o.gaussian_ids) for o in r.objects)),
+                         "added": added, "gaussians": len(m.gaussians)})
     return {"rows": rows}
 
 
@@ -139,8 +164,8 @@ def _med(xs) -> float:
 
 def summarise(rows: list[dict]) -> dict:
     out = {}
-    for sel, name in ((lambda r: True, "all"), (lambda r: r["round"] == "first", "first"),
-                      (lambda r: r["round"] == "repeat", "repeat")):
+    for sel, name in ((lambda r: r["round"] != "grown", "all"), (lambda r: r["round"] == "first", "first"),
+                      (lambda r: r["round"] == "repeat", "repeat"), (lambda r: r["round"] == "grown", "grown")):
         for mode in ("explicit", "implicit", "any"):
             xs = [r["seconds"] for r in rows if sel(r) and (mode == "any" or r["mode"] == mode)]
             if xs:
@@ -150,8 +175,8 @@ def summarise(rows: list[dict]) -> dict:
         for k, v in r["stages"].items():
             stages.setdefault(k, []).append(v)
     out["stage_median"] = {k: statistics.median(v) for k, v in stages.items()}
-    out["right"] = sum(r["right"] for r in rows)
-    out["n"] = len(rows)
+    out["right"] = sum(r["right"] for r in rows if r["round"] != "grown")
+    out["n"] = sum(r["round"] != "grown" for r in rows)
     return out
 
 
@@ -192,6 +217,9 @@ def to_rows(res: dict) -> tuple[list[dict], str]:
                 row[f"warm_{m}_median_s"] = round(s[f"all_{m}"]["median"], 3)
                 row[f"warm_{m}_p95_s"] = round(s[f"all_{m}"]["p95"], 2)
             row["warm_first_ask_p95_s"] = round(s["first_any"]["p95"], 2)
+            if "grown_any" in s:
+                row["after growth median (s)"] = round(s["grown_any"]["median"], 3)
+                row["after growth p95 (s)"] = round(s["grown_any"]["p95"], 2)
             for m in ("explicit", "implicit"):
                 v = _med(c["wall"] for c in cold.get(m, []))
                 row[f"cold_{m}_s"] = round(v, 2) if np.isfinite(v) else "-"
@@ -200,7 +228,9 @@ def to_rows(res: dict) -> tuple[list[dict], str]:
     return rows, (f"baseline: {res['baseline']}; warm: one Grounder kept, each query asked twice; cold: `rg ground` "
                   f"as a new process; load average at start {res['load_avg_start'][0]:.1f}; targets median 0.3 s, "
                   "p95 0.6 s warm, 3 s cold at 20k; issue 28: warm first-ask p95 0.5 s at 1M" + (
-                      "; maps grown by tiling (--tile)" if res.get("tile") else ""))
+                      "; maps grown by tiling (--tile)" if res.get("tile") else "") + (
+                      f"; after growth: {res['grow']} times a strip of 1 % more Gaussians added beyond the map's edge, "
+                      "the field kept, then every query asked once" if res.get("grow") else ""))
 
 
 def table(res: dict) -> str:
@@ -241,6 +271,8 @@ def main() -> int:
     ap.add_argument("--tile", action="store_true", help="grow a map by copies side by side (a larger area at the "
                                                         "same density) instead of jittered copies in place")
     ap.add_argument("--queries", type=int, default=0, help="use only the first N objects' queries (0: all)")
+    ap.add_argument("--grow", type=int, default=0, help="after the warm rounds, grow the map this many times by a "
+                                                        "strip of 1 %% more Gaussians and ask every query once after each")
     ap.add_argument("--out", default="bench_out/latency")
     add_output_flags(ap)
     a = ap.parse_args()
@@ -262,14 +294,14 @@ def main() -> int:
     base_code = Path(a.baseline_code).resolve() if a.baseline_code else ROOT
     res = {"date": time.strftime("%Y-%m-%d %H:%M"), "cpus": os.cpu_count(), "load_avg_start": os.getloadavg(),
            "baseline": str(base_code) if a.baseline_code else "this code with cache=False",
-           "queries": [q[:2] for q in queries], "warm": {}, "cold": {}, "tile": a.tile}
+           "queries": [q[:2] for q in queries], "warm": {}, "cold": {}, "tile": a.tile, "grow": a.grow}
     with tempfile.TemporaryDirectory() as tmp:
         maps = make_maps(Path(a.map), a.sizes, Path(tmp), a.tile)
         for n, path in maps.items():
             res["warm"][str(n)], res["cold"][str(n)] = {}, {}
             for code_name, code in (("baseline", base_code), ("new", new_code)):
                 cache = None if (code_name == "new" or a.baseline_code) else False
-                w = run_child(code, "warm", {"map_path": path, "queries": queries, "cache": cache})
+                w = run_child(code, "warm", {"map_path": path, "queries": queries, "cache": cache, "grow": a.grow})
                 res["warm"][str(n)][code_name] = {"rows": w["rows"], "summary": summarise(w["rows"])}
                 print(f"{n} {code_name} warm: {json.dumps(res['warm'][str(n)][code_name]['summary'])}", file=sys.stderr)
             for code_name, code in (("baseline", base_code), ("new", new_code)):
