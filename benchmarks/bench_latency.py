@@ -192,6 +192,9 @@ def plot(res: dict, out_png: Path) -> None:
         for mode in ("explicit", "implicit"):
             axes[0].plot(sizes, [res["warm"][str(n)][code]["summary"][f"all_{mode}"]["median"] for n in sizes], style,
                          label=f"{code} {mode} median")
+        grown = [res["warm"][str(n)][code]["summary"].get("grown_any", {}).get("p95", np.nan) for n in sizes]
+        if any(np.isfinite(grown)):
+            axes[0].plot(sizes, grown, style[0] + ":", label=f"{code} p95 after growth")
             cold = [_med(c["wall"] for c in (res["cold"][str(n)][code] or {}).get(mode, [])) for n in sizes]
             if any(np.isfinite(cold)):                  # none with --cold-repeats 0 or no baseline code
                 axes[1].plot(sizes, cold, style, label=f"{code} {mode}")
@@ -218,19 +221,18 @@ def to_rows(res: dict) -> tuple[list[dict], str]:
                 row[f"warm_{m}_p95_s"] = round(s[f"all_{m}"]["p95"], 2)
             row["warm_first_ask_p95_s"] = round(s["first_any"]["p95"], 2)
             if "grown_any" in s:
-                row["after growth median (s)"] = round(s["grown_any"]["median"], 3)
-                row["after growth p95 (s)"] = round(s["grown_any"]["p95"], 2)
+                row["warm_grown_median_s"] = round(s["grown_any"]["median"], 3)
+                row["warm_grown_p95_s"] = round(s["grown_any"]["p95"], 2)
             for m in ("explicit", "implicit"):
                 v = _med(c["wall"] for c in cold.get(m, []))
                 row[f"cold_{m}_s"] = round(v, 2) if np.isfinite(v) else "-"
             row["right_targets"] = f"{s['right']}/{s['n']}"
             rows.append(row)
     return rows, (f"baseline: {res['baseline']}; warm: one Grounder kept, each query asked twice; cold: `rg ground` "
-                  f"as a new process; load average at start {res['load_avg_start'][0]:.1f}; targets median 0.3 s, "
-                  "p95 0.6 s warm, 3 s cold at 20k; issue 28: warm first-ask p95 0.5 s at 1M" + (
-                      "; maps grown by tiling (--tile)" if res.get("tile") else "") + (
-                      f"; after growth: {res['grow']} times a strip of 1 % more Gaussians added beyond the map's edge, "
-                      "the field kept, then every query asked once" if res.get("grow") else ""))
+                  "as a new process; targets median 0.3 s, p95 0.6 s warm, 3 s cold at 20k, first-ask p95 0.5 s at 1M "
+                  "(issue 28)" + ("; maps tiled" if res.get("tile") else "") + (
+                      f"; grown: {res['grow']} x 1 % more Gaussians beyond the map's edge, field kept, every query "
+                      "asked after each" if res.get("grow") else ""))
 
 
 def table(res: dict) -> str:
