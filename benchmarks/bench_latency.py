@@ -192,12 +192,12 @@ def plot(res: dict, out_png: Path) -> None:
         for mode in ("explicit", "implicit"):
             axes[0].plot(sizes, [res["warm"][str(n)][code]["summary"][f"all_{mode}"]["median"] for n in sizes], style,
                          label=f"{code} {mode} median")
-        grown = [res["warm"][str(n)][code]["summary"].get("grown_any", {}).get("p95", np.nan) for n in sizes]
-        if any(np.isfinite(grown)):
-            axes[0].plot(sizes, grown, style[0] + ":", label=f"{code} p95 after growth")
             cold = [_med(c["wall"] for c in (res["cold"][str(n)][code] or {}).get(mode, [])) for n in sizes]
             if any(np.isfinite(cold)):                  # none with --cold-repeats 0 or no baseline code
                 axes[1].plot(sizes, cold, style, label=f"{code} {mode}")
+        grown = [res["warm"][str(n)][code]["summary"].get("grown_any", {}).get("p95", np.nan) for n in sizes]
+        if any(np.isfinite(grown)):
+            axes[0].plot(sizes, grown, style[0] + ":", label=f"{code} p95 after growth")
     axes[0].axhline(0.3, color="grey", lw=0.8, ls=":")
     axes[1].axhline(3.0, color="grey", lw=0.8, ls=":")
     for ax, title in ((axes[0], "warm query (Grounder kept), s"), (axes[1], "cold `rg ground` wall, s")):
