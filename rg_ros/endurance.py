@@ -234,7 +234,10 @@ def summarise(samples: list[dict], calls: list[dict], crashed: bool) -> dict:
     lat = [c["seconds"] for c in calls if c["seconds"] is not None]
     k = max(1, len(lat) // 10)
     last = samples[-1] if samples else {}
-    kf = [(x["keyframes"] or 0) + (x.get("keyframes_dropped") or 0) for x in samples if x["rss_mb"] is not None]  # ever added
+    # Keyframes ever added: those held, dropped, and replaced (a replacement removes the old one and
+    # adds a new one, with its own supervision and field caches, at an unchanged count).
+    kf = [(x["keyframes"] or 0) + (x.get("keyframes_dropped") or 0) + (x.get("keyframes_replaced") or 0)
+          for x in samples if x["rss_mb"] is not None]
     kf_added = int(kf[-1] - kf[max(half - 1, 0)]) if kf else 0
     return {"frames_received": last.get("received"), "frames_mapped": last.get("mapped"),
             "frames_dropped": last.get("dropped"), "queue_max": max((s["queue"] or 0) for s in samples) if samples else 0,

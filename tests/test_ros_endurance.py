@@ -91,3 +91,22 @@ def test_replay_fault_schedule(monkeypatch):
     assert [lag for _, lag in out] == [k / 2.0 for k in range(99, -1, -1)] + [0.0] * 3
     assert pauses[0] == 50.0   # the stall; then one period each after the burst (sleep mocked: no time passes)
     assert pauses[1:] == pytest.approx([0.5, 1.0, 1.5], abs=0.01)
+
+
+def test_summary_counts_a_replaced_keyframe_as_added():
+    """A keyframe replaced at the same view arrives at an unchanged keyframe count: it is still a new
+    keyframe (its supervision and field caches), and the memory rule above excuses growth after it."""
+    from rg_ros.endurance import summarise
+
+    def sample(rss, kfs, dropped=0, replaced=0):
+        return {"t": 1.0, "rss_mb": rss, "keyframes": kfs, "keyframes_dropped": dropped, "keyframes_replaced": replaced,
+                "queue": 0, "received": 10, "mapped": 10, "dropped": 0}
+
+    flat = [sample(1000.0, 4)] * 4 + [sample(1001.0, 4)] * 4
+    s = summarise(flat, [], False)
+    assert s["keyframes_added_last_half"] == 0 and s["rss_growth_last_half_pct"] == pytest.approx(0.1)
+    replaced = [sample(1000.0, 4)] * 4 + [sample(1080.0, 4, replaced=1)] * 4
+    s = summarise(replaced, [], False)
+    assert s["keyframes_added_last_half"] == 1 and s["rss_growth_last_half_pct"] == pytest.approx(8.0)
+    dropped = [sample(1000.0, 4)] * 4 + [sample(1000.0, 4, dropped=1)] * 4
+    assert summarise(dropped, [], False)["keyframes_added_last_half"] == 1
