@@ -96,22 +96,21 @@ def child_warm(map_path: str, queries: list, cache: bool | None, grow: int = 0) 
     g = Grounder(m, m.field, RGConfig(), **kw)
     g.ground(queries[0][0], mode=queries[0][1])  # warm-up: models, vocabulary
     rows = []
+
+    def ask(rnd: str, q: str, mode: str, expect: str, **extra) -> None:
+        t = time.perf_counter()
+        r = g.ground(q, mode=mode)
+        rows.append({"round": rnd, "query": q, "mode": mode, "seconds": time.perf_counter() - t,
+                     "stages": r.timings, "target": r.target, "right": r.target == expect,
+                     "success": r.success, "ids": int(sum(len(o.gaussian_ids) for o in r.objects)), **extra})
+
     for rnd in ("first", "repeat"):
         for q, mode, expect in queries:
-            t = time.perf_counter()
-            r = g.ground(q, mode=mode)
-            rows.append({"round": rnd, "query": q, "mode": mode, "seconds": time.perf_counter() - t,
-                         "stages": r.timings, "target": r.target, "right": r.target == expect,
-                         "success": r.success, "ids": int(sum(len(o.gaussian_ids) for o in r.objects))})
+            ask(rnd, q, mode, expect)
     for step in range(grow):   # the map grows between asks, the field stays: "grown" asks
         added = grow_map(m)
         for q, mode, expect in queries:
-            t = time.perf_counter()
-            r = g.ground(q, mode=mode)
-            rows.append({"round": "grown", "query": q, "mode": mode, "seconds": time.perf_counter() - t,
-                         "stages": r.timings, "target": r.target, "right": r.target == expect,
-                         "success": r.success, "ids": int(sum(len(o.gaussian_ids) for o in r.objects)),
-                         "added": added, "gaussians": len(m.gaussians)})
+            ask("grown", q, mode, expect, added=added, gaussians=len(m.gaussians))
     return {"rows": rows}
 
 
