@@ -95,10 +95,11 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
     """Run the node against `scene` (a scene folder) for cfg.frames frames; -> samples and summary."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
-    from rclpy.executors import MultiThreadedExecutor
     from rg_interfaces.srv import Ground
     from std_srvs.srv import Trigger
     from tqdm import tqdm
+
+    from .run import NodeExecutor
 
     work.mkdir(parents=True, exist_ok=True)
     params = write_params(work / "endurance.yaml", {"save_path": str(work / "endurance_map.pt"), **cfg.params})
@@ -123,7 +124,7 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
     probe.create_subscription(DiagnosticArray, "/diagnostics", on_status, 10)
     client = probe.create_client(Ground, "/ground")
     saver = probe.create_client(Trigger, "/rg_node/save_map")
-    executor = MultiThreadedExecutor(context=ctx)
+    executor = NodeExecutor(context=ctx)
     executor.add_node(probe)
     spin = threading.Thread(target=executor.spin, daemon=True)
     spin.start()

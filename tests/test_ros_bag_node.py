@@ -25,7 +25,6 @@ pytest.importorskip("rosbags")
 import rclpy  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import TransformStamped  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
 from rg_interfaces.srv import Ground  # noqa: E402
 from sensor_msgs.msg import CameraInfo, CompressedImage  # noqa: E402
@@ -36,6 +35,7 @@ from conftest import need_rgbd  # noqa: E402
 from rg_core.io.rosbag_write import COLOR_TOPIC, DEPTH_TOPIC, INFO_TOPIC, OPTICAL_FRAME, write_scene_bag  # noqa: E402
 from rg_ros import convert as cv  # noqa: E402
 from rg_ros.replay import replay_qos  # noqa: E402
+from rg_ros.run import NodeExecutor  # noqa: E402
 
 N = 20
 # the node's inputs -> the bag's topics (image_transport: the base names of the compressed streams)
@@ -78,7 +78,7 @@ class BagHarness:
         self.pub_info = self.node.create_publisher(CameraInfo, INFO_TOPIC, q)
         self.pub_tf = self.node.create_publisher(TFMessage, "/tf", QoSProfile(depth=100,
                                                                                reliability=ReliabilityPolicy.RELIABLE))
-        self.executor = MultiThreadedExecutor(context=self.ctx)
+        self.executor = NodeExecutor(context=self.ctx)
         self.executor.add_node(self.node)
         import threading
 

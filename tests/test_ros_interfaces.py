@@ -17,7 +17,6 @@ import pytest  # noqa: E402
 pytest.importorskip("rg_interfaces.srv", reason="rg_interfaces is not installed: scripts/bootstrap.sh builds it from msg/")
 
 import rclpy  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 from rg_interfaces.msg import GroundedObject as GroundedObjectMsg  # noqa: E402
 from rg_interfaces.srv import Ground  # noqa: E402
@@ -26,6 +25,7 @@ from rg_core.grounding.result import GroundedObject, GroundingResult  # noqa: E4
 from rg_core.perception.query import parse_mode  # noqa: E402
 from rg_ros import convert as cv  # noqa: E402
 from rg_ros.pointcloud import from_pointcloud2  # noqa: E402
+from rg_ros.run import NodeExecutor  # noqa: E402
 
 
 def rot_z(deg: float) -> np.ndarray:
@@ -175,12 +175,12 @@ def ros_context():
 
 
 def serve(ctx, handler):
-    """Server and client nodes spun by a MultiThreadedExecutor in a daemon thread."""
+    """Server and client nodes spun by NodeExecutor (rg_ros.run) in a daemon thread."""
     server = rclpy.create_node("rg_test_server", context=ctx)
     client_node = rclpy.create_node("rg_test_client", context=ctx)
     server.create_service(Ground, "ground", handler)
     client = client_node.create_client(Ground, "ground")
-    executor = MultiThreadedExecutor(context=ctx)
+    executor = NodeExecutor(context=ctx)
     executor.add_node(server)
     executor.add_node(client_node)
     thread = threading.Thread(target=executor.spin, daemon=True)

@@ -31,7 +31,6 @@ pytest.importorskip("diagnostic_msgs.msg", reason="ros-diagnostic-msgs is not in
 import rclpy  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.qos import qos_profile_sensor_data  # noqa: E402
 from rg_interfaces.srv import Ground  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
@@ -41,6 +40,7 @@ from rg_ros import convert as cv  # noqa: E402
 from rg_ros import endurance  # noqa: E402
 from rg_ros.params import INPUTS  # noqa: E402
 from rg_ros.replay import frame_messages  # noqa: E402
+from rg_ros.run import NodeExecutor  # noqa: E402
 
 OPTICAL = "camera_color_optical_frame"
 TOPICS_A = dict(INPUTS)   # the launch file's remappings, where rg-replay publishes
@@ -124,7 +124,7 @@ class Harness:
         self.save = self.node.create_client(Trigger, "/rg_node/save_map")
         self.reset = self.node.create_client(Trigger, "/rg_node/reset")
         self.pubs: dict[str, list] = {}
-        self.executor = MultiThreadedExecutor(context=self.ctx)
+        self.executor = NodeExecutor(context=self.ctx)
         self.executor.add_node(self.node)
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
         self.thread.start()
