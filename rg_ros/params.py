@@ -33,7 +33,8 @@ class WorkerConfig:
     embedder: str = "conse"
     """Image-text embedder backend of the supervision and queries (rg_core.perception.embed)."""
     train_slice: Annotated[float, Interval(ge=0.01, le=600.0)] = 0.5
-    """Seconds of field training per idle slice (the map lock is held for one slice)."""
+    """Seconds of field training per idle slice (the map lock is held for one slice; a service call
+    waiting for it ends the slice after its current step)."""
     train_seconds_max: Annotated[float, Interval(ge=0.0, le=1e6)] = 30.0
     """Field training seconds after each supervision change (0 = whenever idle)."""
     refine_iters: Annotated[int, Interval(ge=0, le=100000)] = 0

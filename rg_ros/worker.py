@@ -10,8 +10,8 @@ idle it does small slices of background work, in this order: supervision of new 
 One re-entrant lock (`MapWorker.lock`) is held around every map mutation and read that must see a
 consistent map: add_frame, supervision, field training, refinement, reset, save, grounding, masks
 and map snapshots. Callers go first: while one waits for the lock (`_acquire`), the thread starts
-no new frame or slice, so a query waits for at most the one step in progress, not for every slice
-of a long background job (a released lock is otherwise often re-taken by the thread that released
+no new frame or slice and a training slice ends after its current step, so a query waits for at
+most one frame, training step or supervision pass, not for every slice of a long background job (a released lock is otherwise often re-taken by the thread that released
 it). The perception models (mask generator, embedder; ~10 s to load) load in a
 helper thread started with the worker, so mapping never waits for them.
 """
@@ -251,7 +251,7 @@ class MapWorker:
                     self.log.warning(self._train_blocked)
                     return False
                 self.field = FeatureField(self.mapper, self.cfg.field)
-            r = self.field.train(seconds=w.train_slice, converge=True, final=False)
+            r = self.field.train(seconds=w.train_slice, converge=True, final=False, until=self.caller_waits)
         self._train_seconds += float(r.get("seconds", 0.0))
         if r.get("stop", {}).get("stopped") == "converged":
             if r["steps"]:
@@ -320,6 +320,10 @@ class MapWorker:
             return save_map(self.mapper, path)
         finally:
             self.lock.release()
+
+    def caller_waits(self) -> bool:
+        """A service call waits for the map lock: a training slice ends after its current step."""
+        return not self._no_callers.is_set()
 
     def _acquire(self, timeout: float) -> bool:
         """Take the map lock ahead of the worker thread (it starts nothing new while a caller waits);

@@ -236,6 +236,20 @@ def test_training_follows_a_growing_map_and_pca_refits(synth_scene):
 
 # ------------------------------------------------------------------------------------ persistence
 
+def test_until_ends_training_before_the_next_step(synth_scene):
+    """The node's slices pass until=caller_waits: a service call waits for one step, not a slice.
+    An interrupted call is no stop decision, even with final=True."""
+    mapper = make_map(synth_scene, synth_scene.train[:3])
+    oracle_supervision(mapper, synth_scene.train, synth_scene.objects, EMBED)
+    f = FeatureField(mapper, FieldConfig(rays_per_step=64))
+    asked = []
+    r = f.train(iters=10, until=lambda: asked.append(1) or len(asked) > 2)
+    assert r["steps"] == 2 and f.steps == 2 and len(asked) == 3
+    assert r["stop"]["stopped"] == "interrupted" and f.stop is None
+    r = f.train(seconds=60.0, converge=True, final=False, until=lambda: True)
+    assert r["steps"] == 0 and f.steps == 2 and r["stop"]["stopped"] == "interrupted"
+
+
 def test_field_saved_with_the_map(trained, tmp_path):
     path = save_map(trained.mapper, tmp_path / "m.rgmap")
     back = load_map(path)

@@ -191,3 +191,19 @@ def test_a_waiting_caller_goes_before_new_work(worker):
     assert worker._acquire(5.0)                  # a real caller gets the lock and gives way again
     worker.lock.release()
     assert worker._callers == 0 and worker._no_callers.is_set()
+
+
+def test_a_waiting_caller_is_what_ends_a_training_slice(worker):
+    """`caller_waits` (the `until` of the worker's training slices) is true exactly while a service
+    call waits for the map lock."""
+    import threading
+
+    assert not worker.caller_waits()
+    worker.lock.acquire()                        # a slice in progress holds the lock
+    got = []
+    caller = threading.Thread(target=lambda: got.append(worker._acquire(10.0)) or worker.lock.release())
+    caller.start()
+    assert wait_for(worker.caller_waits)
+    worker.lock.release()
+    caller.join(10)
+    assert got == [True] and not worker.caller_waits()

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -303,13 +304,15 @@ class FeatureField:
         return f, l_lang, l_in
 
     def train(self, seconds: float | None = None, iters: int | None = None, progress: bool = False,
-              converge: bool | None = None, final: bool = True) -> dict:
+              converge: bool | None = None, final: bool = True, until: Callable[[], bool] | None = None) -> dict:
         """Train until `seconds` or `iters` runs out or, with the stop test on, the held-out accuracy
         converged (converge.py). No budget given: cfg.steps steps if > 0, else up to cfg.seconds with
         the stop test (cfg.converge_tol > 0). An explicit budget is fixed unless `converge` is True.
-        Returns steps, seconds, mean losses, the budget and the stop decision (or why nothing ran).
-        The decision is kept as `stop` (the field answers from then on) when converged or when the
-        budget was `final`; a slice of a longer budget (the node's) passes final=False."""
+        `until()` true before a step ends the call there ("interrupted": the node's service calls
+        wait for one step, not a slice). Returns steps, seconds, mean losses, the budget and the stop
+        decision (or why nothing ran). The decision is kept as `stop` (the field answers from then
+        on) when converged or when the budget was `final`; a slice of a longer budget (the node's)
+        passes final=False."""
         import sys
 
         from tqdm import tqdm
@@ -324,6 +327,9 @@ class FeatureField:
         while (iters is None or len(hist) < iters) and (seconds is None or time.perf_counter() - t0 < seconds):
             if converge and (stop := check(self)) is not None:
                 break
+            if until is not None and until():
+                stop = {"stopped": "interrupted", "steps": self.steps, "seconds": round(self.seconds, 3)}
+                break
             r = self.train_step()
             if "skipped" in r:
                 bar.close()
@@ -336,7 +342,7 @@ class FeatureField:
         if stop is None:
             stop = {"stopped": "steps" if iters is not None and len(hist) >= iters else "seconds",
                     "steps": self.steps, "seconds": round(self.seconds, 3)}
-        if final or stop["stopped"] == "converged":
+        if (final and stop["stopped"] != "interrupted") or stop["stopped"] == "converged":
             self.stop = stop
         mean = lambda k: float(np.mean([h[k] for h in hist])) if hist else float("nan")
         return {"steps": len(hist), "seconds": time.perf_counter() - t0, "loss": mean("loss"),
