@@ -11,9 +11,10 @@ One re-entrant lock (`MapWorker.lock`) is held around every map mutation and rea
 consistent map: add_frame, supervision, field training, refinement, reset, save, grounding, masks
 and map snapshots. Callers go first: while one waits for the lock (`_acquire`), the thread starts
 no new frame or slice and a training slice ends after its current step, so a query waits for at
-most one frame, training step or supervision pass, not for every slice of a long background job (a released lock is otherwise often re-taken by the thread that released
-it). The perception models (mask generator, embedder; ~10 s to load) load in a
-helper thread started with the worker, so mapping never waits for them.
+most one frame, training step or supervision pass, not for every slice of a long background job
+(a released lock is otherwise often re-taken by the thread that released it). The perception
+models (mask generator, embedder; ~10 s to load) load in a helper thread started with the worker,
+so mapping never waits for them.
 """
 from __future__ import annotations
 
