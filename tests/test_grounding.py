@@ -208,3 +208,31 @@ def test_a_larger_map_is_culled_around_the_reference_view(grounder, synth_scene,
     keys = [k for k in big.cache.tables["groups"]]
     assert keys and all(k[2] is not None for k in keys)                                  # clustered over a region
     assert np.unpackbits(np.frombuffer(keys[0][2], np.uint8))[:4 * N].sum() <= N         # at most copy 0
+
+
+@pytest.mark.parametrize("share, expect_visible", [(0.4, True), (0.5, False)])
+def test_visible_mask_follows_the_share_threshold(share, expect_visible):
+    """A half-transparent group Gaussian (opacity 0.45) in front of an opaque wall: at its centre the
+    full render is opaque and the group holds 45 % of the blending weight, so it is visible below a
+    0.45 share and not above; its amodal mask (alpha 0.45 < mask_alpha) stays empty either way."""
+    from rg_core.grounding.result import GroundedObject, GroundingResult
+    from rg_core.map.mapper import Mapper
+
+    mapper = Mapper()
+    mapper.gaussians.append(torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([0.05]), torch.ones(1, 3), opacity=0.45)
+    mapper.gaussians.append(torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([1.0]), torch.zeros(1, 3), opacity=0.999)
+    cfg = RGConfig()
+    cfg.ground.visible_share = share
+    z3 = np.zeros(3)
+    ob = GroundedObject(gaussian_ids=np.array([0]), points=np.zeros((1, 3), np.float32),
+                        colors=np.zeros((1, 3), np.uint8), aabb_min=z3, aabb_max=z3, obb_center=z3,
+                        obb_rotation=np.eye(3), obb_extent=z3)
+    K = np.array([[100.0, 0, 32], [0, 100.0, 32], [0, 0, 1]])
+    g = Grounder(mapper, None, cfg)
+    amodal, visible = g.masks(GroundingResult(True, "", objects=[ob]), K, np.eye(4), 64, 64)
+    full = mapper.render(K, np.eye(4), 64, 64)
+    assert float(full.alpha[32, 32]) > 0.99          # the wall behind makes the pixel opaque
+    assert bool(visible[32, 32]) is expect_visible
+    assert not amodal.any()
+    # Far from the group the wall alone covers the pixel: never the group's.
+    assert not visible[0, 0] and not visible[63, 63]

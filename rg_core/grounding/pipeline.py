@@ -432,8 +432,8 @@ class Grounder:
     def masks(self, result: GroundingResult, K: np.ndarray, cam_to_world: np.ndarray, width: int,
               height: int) -> tuple[np.ndarray, np.ndarray]:
         """Amodal (the group rendered alone) and visible (the group's share of the blending weight
-        in the full render above one half) masks of a result's groups, also of an abstained
-        answer's best guess: two bool [height, width]."""
+        in the full render above `ground.visible_share`) masks of a result's groups, also of an
+        abstained answer's best guess: two bool [height, width]."""
         g = self.mapper.gaussians
         N = len(g)
         empty = np.zeros((height, width), bool)
@@ -450,6 +450,6 @@ class Grounder:
         alone = rasterize(*args, member, cam, subset=torch.from_numpy(ids))
         a = self.gcfg.mask_alpha
         share = full.channels[..., 0] / full.alpha.clamp(min=1e-6)
-        visible = (full.alpha > a) & (share > 0.5)
+        visible = (full.alpha > a) & (share > self.gcfg.visible_share)
         amodal = alone.alpha > a
         return amodal.numpy(), visible.numpy()
