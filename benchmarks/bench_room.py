@@ -12,6 +12,8 @@
   seconds, peak RSS, test PSNR) and `rg eval --map` of that map with oracle supervision (explicit /
   implicit visible mIoU; first_answer_s: supervision and field training on the built map). Target: the room's explicit mIoU within 5 points of the table top's.
 - --more-seeds: for each, its table top and head-height room again (the gap is one figure per seed).
+- --hires WxH (default 640x480, "none" skips): the table top and head-height room of --seed rendered at
+  that size and mapped at its width (`map.width`): the gap at a Kinect's resolution, and its cost.
 - 7-Scenes redkitchen_100 (real Kinect, every 10th frame of a room-scale sequence): `rg map` alone
   (no object ground truth).
 Every step runs as its own `rg` process, one after the other. Writes room.png (seconds and peak RSS
@@ -63,22 +65,23 @@ def scene_rows(name: str, scene: Path, work: Path, oracle: bool, config: Path | 
 
 def to_rows(report: dict) -> tuple[list[dict], str]:
     rows = [{k: v for k, v in r.items() if v is not None} for r in report["rows"]]
-    def table_of(scene: str) -> dict:   # the table top of the same seed
-        tag = re.search(r", seed (\d+)$", scene)
-        tag = tag.group(1) if tag else None
-        return next(r for r in report["rows"] if r["scene"] == ("table top" if tag is None else f"table top, seed {tag}"))
+    def table_of(scene: str) -> dict:   # the table top of the same seed and size
+        tag = re.search(r", (seed \d+|\d+x\d+)$", scene)
+        return next(r for r in report["rows"] if r["scene"] == ("table top" if tag is None else f"table top, {tag.group(1)}"))
 
     gap = {r["scene"]: table_of(r["scene"])["explicit_miou_visible"] - r["explicit_miou_visible"]
            for r in report["rows"] if r["scene"].startswith("synthetic room")}
     lo, hi = report.get("close_radius", (0.45, 0.7))
     more = "".join(f", {x}" for x in report.get("more_seeds", []))
     label = lambda k: k.replace("synthetic room, ", "").replace("synthetic room", "room")
-    return rows, (f"rg synth seeds {report['seed']}{more}: {report['objects']} objects on {report['tables']} tables, "
-                  f"{report['views']} views 320x240 walked 0.9-1.3 m from the tables (room) or {lo:g}-{hi:g} m "
-                  f"(close; table top 0.38-0.62 m); seed spacing {report.get('seed_spacing', 0.015):g} m; table "
-                  f"top 7 objects, {report['table_views']} views; oracle. Explicit mIoU below the same seed's table "
-                  "top: " + ", ".join(f"{label(k)} {v:.1f}" for k, v in gap.items())
-                  + " (target <= 5). redkitchen_100: map only.")
+    hi_res = report.get("hires", "none")
+    return rows, (f"rg synth seeds {report['seed']}{more}: {report['objects']} objects, {report['tables']} tables, "
+                  f"{report['views']} views 320x240 at 0.9-1.3 m from the tables (room) or {lo:g}-{hi:g} m "
+                  f"(close; table top 0.38-0.62 m); seed spacing {report.get('seed_spacing', 0.015):g} m"
+                  + ("" if hi_res == "none" else f"; {hi_res}: rendered and mapped at it")
+                  + f"; table top 7 objects, {report['table_views']} views; oracle. Explicit mIoU below the table "
+                  "top (same seed, size): " + ", ".join(f"{label(k)} {v:.1f}" for k, v in gap.items())
+                  + " (target <= 5)")
 
 
 def plot(report: dict, png: Path) -> Path:
@@ -119,6 +122,8 @@ def main() -> int:
                     help="map.seed_spacing (m) of the room's third row: far surfaces seeded at half the stride")
     ap.add_argument("--more-seeds", type=int, nargs="*", default=[],
                     help="further rg synth seeds: each adds its table top and head-height room (the gap per seed)")
+    ap.add_argument("--hires", default="640x480",
+                    help='WxH of a further table top and room of --seed, mapped at that width ("none": skip)')
     ap.add_argument("--kitchen", default=str(ROOT.parent / "shared" / "data" / "rgbd" / "redkitchen_100"))
     ap.add_argument("--out", default="bench_out")
     add_output_flags(ap)
@@ -145,12 +150,22 @@ def main() -> int:
             rg("synth", str(work / f"table_{seed}"), "--objects", "7", "--views", str(args.table_views), "--seed", str(seed))
             rows.append(scene_rows(f"table top, seed {seed}", work / f"table_{seed}", work, True))
             rows.append(scene_rows(f"synthetic room, seed {seed}", work / f"room_{seed}", work, True))
+        if args.hires != "none":
+            size, width = args.hires, args.hires.split("x")[0]
+            for name, layout in (("room_hi", ("--layout", "room", "--objects", str(args.objects), "--tables",
+                                             str(args.tables), "--views", str(args.views))),
+                                 ("table_hi", ("--objects", "7", "--views", str(args.table_views)))):
+                rg("synth", str(work / name), *layout, "--seed", str(args.seed), "--size", size)
+            hires = work / "hires.yaml"
+            hires.write_text(f"map:\n  width: {width}\n")
+            rows.append(scene_rows(f"table top, {size}", work / "table_hi", work, True, hires))
+            rows.append(scene_rows(f"synthetic room, {size}", work / "room_hi", work, True, hires))
         if Path(args.kitchen).is_dir():
             rows.append(scene_rows("redkitchen_100", Path(args.kitchen), work, False))
             rows.append(scene_rows("redkitchen_100, seed spacing", Path(args.kitchen), work, False, spacing))
     report = {"seed": args.seed, "objects": args.objects, "views": args.views, "tables": args.tables,
               "table_views": args.table_views, "close_radius": list(args.close_radius),
-              "seed_spacing": args.seed_spacing, "more_seeds": args.more_seeds,
+              "seed_spacing": args.seed_spacing, "more_seeds": args.more_seeds, "hires": args.hires,
               "synth_room_s": room["seconds"], "rows": rows}
     png = plot(report, Path(args.out) / "room.png")
     return finish(args, report, "bench_room", to_rows, plots=[png])
