@@ -300,8 +300,8 @@ class GroundConfig:
     visible_share: Annotated[float, Interval(gt=0.0, lt=1.0)] = 0.4
     """Visible mask: where the group's share of the full render's blending weight is above this. Seen
     from 1-1.4 m, a room's objects render about 15 % smaller than they are at 0.5 (their rims hold few
-    Gaussians); 0.4 lifted visible IoU 0.69 -> 0.72 in held-out synthetic rooms, table tops unchanged
-    (docs/grounding.md)."""
+    Gaussians); 0.4 lifted visible IoU 0.685 -> 0.721 in a synthetic room in no benchmark, table tops
+    unchanged (docs/pipeline.md)."""
     outlier_mads: float = 3.0
     """Group Gaussians farther than this many robust spreads from the group's median are dropped."""
     carve_views: int = 32
