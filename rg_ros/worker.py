@@ -399,15 +399,16 @@ class MapWorker:
             self.lock.release()
 
     def masks(self, result: GroundingResult, K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int,
-              timeout: float = 0.5) -> tuple[np.ndarray, np.ndarray] | None:
-        """(amodal, visible) bool [H, W] of a result from a camera, or None if the map is busy or
-        there is no grounder (e.g. after a reset)."""
+              timeout: float = 0.5, depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+        """(amodal, visible) bool [H, W] of a result from a camera (the visible one sharpened by that
+        camera's depth image [H, W] metres, if given), or None if the map is busy or there is no
+        grounder (e.g. after a reset)."""
         if self._grounder is None or not self._acquire(timeout):
             return None
         try:
             if self._grounder is None:
                 return None
-            amodal, visible = self._grounder.masks(result, K, cam_to_world, width, height)
+            amodal, visible = self._grounder.masks(result, K, cam_to_world, width, height, depth)
             return np.asarray(amodal, bool), np.asarray(visible, bool)
         finally:
             self.lock.release()

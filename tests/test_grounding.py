@@ -36,6 +36,8 @@ def test_masks_on_test_views(grounder, synth_scene):
     assert ev["explicit"]["target_accuracy"] == 100.0 and ev["explicit"]["success_rate"] == 100.0
     assert ev["explicit"]["miou_visible"] >= 30, ev["explicit"]
     assert ev["explicit"]["miou_amodal"] >= 25, ev["explicit"]
+    # The test views' own depth sharpens the visible masks (what the node does with its frame).
+    assert ev["explicit"]["miou_visible_depth"] >= ev["explicit"]["miou_visible"], ev["explicit"]   # 82.5 vs 77.6
 
 
 def test_scenes_without_amodal_masks_report_amodal_as_missing(grounder, synth_scene):
@@ -50,6 +52,11 @@ def test_scenes_without_amodal_masks_report_amodal_as_missing(grounder, synth_sc
     assert np.isnan(ev["explicit"]["miou_amodal"]) and not np.isnan(full["miou_amodal"])
     assert ev["explicit"]["miou_visible"] == full["miou_visible"]
     assert all(np.isnan(o["miou_amodal"]) for o in ev["per_object"].values())
+    # Views without depth: the depth-sharpened figure is missing too, never the rendered one again.
+    flat = dataclasses.replace(synth_scene, test=[dataclasses.replace(f, depth_path=None) for f in synth_scene.test])
+    nod = evaluate_queries(grounder, flat, implicit_per_object=0)["explicit"]
+    assert np.isnan(nod["miou_visible_depth"]) and not np.isnan(full["miou_visible_depth"])
+    assert nod["miou_visible"] == full["miou_visible"]
 
 
 def test_a_name_two_objects_share_is_asked_once_and_scored_against_the_one_found(grounder, synth_scene):
@@ -236,3 +243,34 @@ def test_visible_mask_follows_the_share_threshold(share, expect_visible):
     assert not amodal.any()
     # Far from the group the wall alone covers the pixel: never the group's.
     assert not visible[0, 0] and not visible[63, 63]
+
+
+def test_visible_mask_follows_the_cameras_depth_image():
+    """An opaque group Gaussian at 1 m before a wall at 2 m (the rest of the map). The camera's depth
+    image shows the object smaller than the blob renders (rows and cols 28-35): pixels whose reading
+    is the wall's leave the visible mask, the object's stay; the amodal mask ignores depth;
+    visible_depth_tol 0 renders only."""
+    from rg_core.grounding.result import GroundedObject, GroundingResult
+    from rg_core.map.mapper import Mapper
+
+    mapper = Mapper()
+    mapper.gaussians.append(torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([0.05]), torch.ones(1, 3), opacity=0.99)
+    mapper.gaussians.append(torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([1.0]), torch.zeros(1, 3), opacity=0.999)
+    z3 = np.zeros(3)
+    ob = GroundedObject(gaussian_ids=np.array([0]), points=np.zeros((1, 3), np.float32),
+                        colors=np.zeros((1, 3), np.uint8), aabb_min=z3, aabb_max=z3, obb_center=z3,
+                        obb_rotation=np.eye(3), obb_extent=z3)
+    res = GroundingResult(True, "", objects=[ob])
+    K = np.array([[100.0, 0, 32], [0, 100.0, 32], [0, 0, 1]])
+    obj = np.zeros((64, 64), bool)
+    obj[28:36, 28:36] = True
+    depth = np.where(obj, 1.0, 2.0).astype(np.float32)
+    cfg = RGConfig()
+    g = Grounder(mapper, None, cfg)
+    amodal0, raw = g.masks(res, K, np.eye(4), 64, 64)
+    amodal, visible = g.masks(res, K, np.eye(4), 64, 64, depth)
+    assert (raw & ~obj).sum() > 20 and (raw & obj).sum() == obj.sum()    # the render bleeds onto the wall
+    np.testing.assert_array_equal(visible, obj)
+    np.testing.assert_array_equal(amodal, amodal0)
+    cfg.ground.visible_depth_tol = 0.0
+    np.testing.assert_array_equal(Grounder(mapper, None, cfg).masks(res, K, np.eye(4), 64, 64, depth)[1], raw)

@@ -23,6 +23,7 @@ from . import confidence, phrases, relations, stages
 from .cache import MapCache
 from .carve import mask_depth_offsets, registration_border
 from .grouping import Groups, cluster_instances
+from .masks import refine_visible
 from .relevancy import CANONICAL, relevancy_pca
 from ..perception.query import parse_mode, query_problem
 from .result import GroundingResult
@@ -430,10 +431,11 @@ class Grounder:
 
     @torch.no_grad()
     def masks(self, result: GroundingResult, K: np.ndarray, cam_to_world: np.ndarray, width: int,
-              height: int) -> tuple[np.ndarray, np.ndarray]:
+              height: int, depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Amodal (the group rendered alone) and visible (the group's share of the blending weight
         in the full render above `ground.visible_share`) masks of a result's groups, also of an
-        abstained answer's best guess: two bool [height, width]."""
+        abstained answer's best guess: two bool [height, width]. With the camera's depth image
+        (`depth` [height, width] metres) the visible mask follows it (`ground.visible_depth_tol`)."""
         g = self.mapper.gaussians
         N = len(g)
         empty = np.zeros((height, width), bool)
@@ -450,6 +452,12 @@ class Grounder:
         alone = rasterize(*args, member, cam, subset=torch.from_numpy(ids))
         a = self.gcfg.mask_alpha
         share = full.channels[..., 0] / full.alpha.clamp(min=1e-6)
-        visible = (full.alpha > a) & (share > self.gcfg.visible_share)
+        visible = ((full.alpha > a) & (share > self.gcfg.visible_share)).numpy()
         amodal = alone.alpha > a
-        return amodal.numpy(), visible.numpy()
+        if depth is not None and self.gcfg.visible_depth_tol > 0:
+            others = torch.ones(N, dtype=torch.bool)
+            others[torch.from_numpy(ids)] = False
+            rest = rasterize(*args, member, cam, subset=others)
+            visible = refine_visible(visible, alone.alpha.numpy(), alone.depth.numpy(), rest.alpha.numpy(),
+                                     rest.depth.numpy(), depth, self.gcfg.visible_depth_tol)
+        return amodal.numpy(), visible

@@ -1,0 +1,41 @@
+"""Visible masks sharpened by the camera's own depth image. Near the mask, each pixel with a reading
+goes to whichever surface of the map its sensor depth is nearer: the group's (rendered alone) or the
+rest of the map's (rendered without the group); where the two are too close in depth to tell apart
+(an object's foot on the table) the rendered answer stands (docs/pipeline.md, "Grounding")."""
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import binary_dilation
+
+
+def refine_visible(visible: np.ndarray, group_alpha: np.ndarray, group_depth: np.ndarray, rest_alpha: np.ndarray,
+                   rest_depth: np.ndarray, depth: np.ndarray, rel_tol: float, abs_tol: float = 0.01,
+                   rim_alpha: float = 0.3) -> np.ndarray:
+    """visible [H, W] bool; the group rendered alone and the rest of the map rendered without it:
+    alpha and expected depth [H, W]; the camera's depth image [H, W] metres (0, NaN, inf: no
+    reading). Where the two rendered surfaces lie more than max(abs_tol, rel_tol * the group's depth)
+    apart (or the rest covers nothing there), a
+    mask pixel whose reading is nearer the rest's surface leaves the mask, and a pixel touching the
+    mask whose reading is nearer the group's (covered with alpha > rim_alpha) joins it. Pixels
+    without a reading, or where the surfaces cannot be told apart, keep the rendered answer."""
+    visible = np.asarray(visible, bool)
+    if np.shape(depth) != visible.shape:
+        raise ValueError(f"refine_visible: depth image is {np.shape(depth)[1]}x{np.shape(depth)[0]} but the mask "
+                         f"is {visible.shape[1]}x{visible.shape[0]}; give the depth registered to the camera the "
+                         "mask is rendered for")
+    with np.errstate(invalid="ignore", over="ignore"):
+        d = np.asarray(depth, np.float64)
+        reading = np.isfinite(d) & (d > 0)
+        d = np.where(reading, d, 0.0)
+
+        def surface(alpha, sdepth):   # [H, W] metres, inf where the render covers nothing
+            sdepth = np.asarray(sdepth, np.float64)
+            ok = (np.asarray(alpha) > 0.05) & np.isfinite(sdepth) & (sdepth > 0)
+            return np.where(ok, sdepth, np.inf)
+
+        g, r = surface(group_alpha, group_depth), surface(rest_alpha, rest_depth)
+        apart = np.isfinite(g) & ~(np.abs(g - r) <= np.maximum(abs_tol, rel_tol * np.where(np.isfinite(g), g, 0.0)))
+        nearer_group = np.abs(d - g) < np.abs(d - r)
+    decide = reading & apart
+    out = visible & ~(decide & ~nearer_group)
+    return out | (binary_dilation(visible) & decide & nearer_group & (np.asarray(group_alpha) > rim_alpha))

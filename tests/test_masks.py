@@ -1,0 +1,79 @@
+"""Visible masks sharpened by the camera's depth image (rg_core.grounding.masks.refine_visible)."""
+import numpy as np
+import pytest
+
+from rg_core.grounding.masks import refine_visible
+
+H, W = 24, 32
+
+
+def _square_scene():
+    """An object (rows 8-15, cols 10-19) at 1.0 m before a wall at 2.0 m; the map renders it one
+    pixel to the right (cols 11-20), its Gaussians spreading over cols 9-21 alone; the rest of the
+    map (the wall) covers every pixel at 2.0 m."""
+    truth = np.zeros((H, W), bool)
+    truth[8:16, 10:20] = True
+    depth = np.where(truth, 1.0, 2.0).astype(np.float32)
+    rendered = np.zeros((H, W), bool)
+    rendered[8:16, 11:21] = True
+    ga = np.zeros((H, W), np.float32)
+    ga[7:17, 9:22] = 0.9
+    gd = np.where(ga > 0, 1.0, 0.0).astype(np.float32)
+    return truth, depth, rendered, (ga, gd, np.ones((H, W), np.float32), np.full((H, W), 2.0, np.float32))
+
+
+def test_a_shifted_render_is_moved_onto_the_sensed_object():
+    truth, depth, rendered, surf = _square_scene()
+    out = refine_visible(rendered, *surf, depth, rel_tol=0.03)
+    np.testing.assert_array_equal(out, truth)           # col 20 (the wall) out, col 10 (the object) in
+
+
+def test_an_occluder_the_map_holds_removes_its_pixels():
+    truth, depth, _, (ga, gd, ra, rd) = _square_scene()
+    depth[8:16, 10:15] = rd[8:16, 10:15] = 0.6          # a box in front of the left half, in the map
+    out = refine_visible(truth, ga, gd, ra, rd, depth, rel_tol=0.03)
+    assert not out[:, :15].any() and out[8:16, 15:20].all()
+
+
+def test_rim_pixels_join_only_where_the_group_covers_them():
+    truth, depth, rendered, (ga, gd, ra, rd) = _square_scene()
+    ga[:, 10] = 0.1                                     # the group barely reaches col 10
+    out = refine_visible(rendered, ga, gd, ra, rd, depth, rel_tol=0.03)
+    assert not out[:, 10].any() and not out[:, 20].any()
+
+
+def test_surfaces_too_close_to_tell_apart_keep_the_rendered_answer():
+    """The object's foot on a table 2 cm behind it: at 3 % of 1-2 m the two cannot be told apart by
+    depth; at 1 % (floor 1 cm) they can."""
+    truth, depth, rendered, (ga, gd, ra, rd) = _square_scene()
+    rd[:] = 1.02
+    depth[~truth] = 1.02
+    np.testing.assert_array_equal(refine_visible(rendered, ga, gd, ra, rd, depth, rel_tol=0.03), rendered)
+    np.testing.assert_array_equal(refine_visible(rendered, ga, gd, ra, rd, depth, rel_tol=0.01), truth)
+
+
+@pytest.mark.parametrize("bad", [0.0, np.nan, np.inf, -np.inf, -1.0])
+def test_pixels_without_a_reading_keep_the_rendered_answer(bad):
+    _, _, rendered, surf = _square_scene()
+    depth = np.full((H, W), bad, np.float32)
+    np.testing.assert_array_equal(refine_visible(rendered, *surf, depth, rel_tol=0.03), rendered)
+
+
+@pytest.mark.parametrize("extreme, empty", [(1e-30, False), (3.0e38, True), (1e300, True)])
+def test_extreme_depths_go_to_the_nearer_surface_without_overflow(extreme, empty):
+    _, _, rendered, surf = _square_scene()
+    with np.errstate(all="raise"):                      # no overflow, no invalid operation
+        out = refine_visible(rendered, *surf, np.full((H, W), extreme), rel_tol=0.03)
+    assert not out.any() if empty else (out >= rendered).all()
+
+
+def test_a_group_without_a_finite_rendered_depth_keeps_the_rendered_answer():
+    _, depth, rendered, (ga, gd, ra, rd) = _square_scene()
+    gd[:] = np.nan
+    np.testing.assert_array_equal(refine_visible(rendered, ga, gd, ra, rd, depth, rel_tol=0.03), rendered)
+
+
+def test_a_depth_image_of_another_size_is_a_clear_error():
+    _, _, rendered, surf = _square_scene()
+    with pytest.raises(ValueError, match=r"depth image is 16x12 but the mask is 32x24"):
+        refine_visible(rendered, *surf, np.ones((12, 16), np.float32), rel_tol=0.03)
