@@ -302,7 +302,7 @@ class GroundConfig:
     from 1-1.4 m, a room's objects render about 15 % smaller than they are at 0.5 (their rims hold few
     Gaussians); 0.4 lifted visible IoU 0.685 -> 0.721 in a synthetic room in no benchmark, table tops
     unchanged (docs/pipeline.md)."""
-    visible_depth_tol: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.03
+    visible_depth_tol: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.015
     """With the camera's depth image (the node's current frame; `rg eval`'s test views, reported as
     miou_visible_depth), each pixel on and around the visible mask goes to the map surface its reading
     is nearer, the group's or the rest's, where those lie more than this share of the depth apart (at

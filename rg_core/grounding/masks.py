@@ -10,7 +10,7 @@ from scipy.ndimage import binary_dilation
 
 def refine_visible(visible: np.ndarray, group_alpha: np.ndarray, group_depth: np.ndarray, rest_alpha: np.ndarray,
                    rest_depth: np.ndarray, depth: np.ndarray, rel_tol: float, abs_tol: float = 0.01,
-                   rim_alpha: float = 0.3) -> np.ndarray:
+                   rim_alpha: float = 0.1) -> np.ndarray:
     """visible [H, W] bool; the group rendered alone and the rest of the map rendered without it:
     alpha and expected depth [H, W]; the camera's depth image [H, W] metres (0, NaN, inf: no
     reading). Where the two rendered surfaces lie more than max(abs_tol, rel_tol * the group's depth)
