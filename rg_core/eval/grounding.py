@@ -60,9 +60,8 @@ def evaluate_queries(grounder, scene, implicit_per_object: int = 1, min_visible_
             gt_amodal = f.load_complete_mask(oid) if f.has_amodal_masks() else None   # None: not in the data
             W, H = f.intrinsics.width, f.intrinsics.height
             t1 = time.perf_counter()
-            amodal, visible = grounder.masks(res, f.intrinsics.K, f.cam_to_world, W, H)
+            amodal, visible, visible_d = grounder.mask_layers(res, f.intrinsics.K, f.cam_to_world, W, H, depth)
             t_mask = time.perf_counter() - t1
-            visible_d = None if depth is None else grounder.masks(res, f.intrinsics.K, f.cam_to_world, W, H, depth)[1]
             loc = False
             if res.objects:
                 rel, _ = grounder.relevancy_view(res.target, res.scale, f.intrinsics.K, f.cam_to_world, W, H)

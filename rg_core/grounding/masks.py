@@ -14,10 +14,10 @@ def refine_visible(visible: np.ndarray, group_alpha: np.ndarray, group_depth: np
     """visible [H, W] bool; the group rendered alone and the rest of the map rendered without it:
     alpha and expected depth [H, W]; the camera's depth image [H, W] metres (0, NaN, inf: no
     reading). Where the two rendered surfaces lie more than max(abs_tol, rel_tol * the group's depth)
-    apart (or the rest covers nothing there), a
-    mask pixel whose reading is nearer the rest's surface leaves the mask, and a pixel touching the
-    mask whose reading is nearer the group's (covered with alpha > rim_alpha) joins it. Pixels
-    without a reading, or where the surfaces cannot be told apart, keep the rendered answer."""
+    apart (or the rest covers nothing there), a mask pixel whose reading is nearer the rest's surface
+    leaves the mask, and a pixel touching the mask whose reading is nearer the group's (covered with
+    alpha > rim_alpha) joins it. Pixels without a reading, or where the surfaces cannot be told
+    apart, keep the rendered answer."""
     visible = np.asarray(visible, bool)
     if np.shape(depth) != visible.shape:
         raise ValueError(f"refine_visible: depth image is {np.shape(depth)[1]}x{np.shape(depth)[0]} but the mask "

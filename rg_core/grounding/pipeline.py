@@ -429,19 +429,26 @@ class Grounder:
 
     # ------------------------------------------------------------------------------ masks
 
-    @torch.no_grad()
     def masks(self, result: GroundingResult, K: np.ndarray, cam_to_world: np.ndarray, width: int,
               height: int, depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Amodal (the group rendered alone) and visible (the group's share of the blending weight
         in the full render above `ground.visible_share`) masks of a result's groups, also of an
         abstained answer's best guess: two bool [height, width]. With the camera's depth image
         (`depth` [height, width] metres) the visible mask follows it (`ground.visible_depth_tol`)."""
+        amodal, visible, with_depth = self.mask_layers(result, K, cam_to_world, width, height, depth)
+        return amodal, visible if with_depth is None else with_depth
+
+    @torch.no_grad()
+    def mask_layers(self, result: GroundingResult, K: np.ndarray, cam_to_world: np.ndarray, width: int,
+                    height: int, depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """`masks` from one set of renders: amodal, visible as rendered, and visible following
+        `depth` (None without it): what `rg eval` scores side by side."""
         g = self.mapper.gaussians
         N = len(g)
         empty = np.zeros((height, width), bool)
         ids = np.concatenate([o.gaussian_ids for o in result.objects]) if result.objects else np.zeros(0, np.int64)
         if not len(ids) or not N:
-            return empty, empty.copy()
+            return empty, empty.copy(), None if depth is None else empty.copy()
         if int(ids.max()) >= N:
             raise ValueError(f"masks: the result names Gaussian {int(ids.max())} but the map now has {N}; ground again")
         cam = self.mapper.camera(K, cam_to_world, width, height)
@@ -453,11 +460,11 @@ class Grounder:
         a = self.gcfg.mask_alpha
         share = full.channels[..., 0] / full.alpha.clamp(min=1e-6)
         visible = ((full.alpha > a) & (share > self.gcfg.visible_share)).numpy()
-        amodal = alone.alpha > a
-        if depth is not None and self.gcfg.visible_depth_tol > 0:
-            others = torch.ones(N, dtype=torch.bool)
-            others[torch.from_numpy(ids)] = False
-            rest = rasterize(*args, member, cam, subset=others)
-            visible = refine_visible(visible, alone.alpha.numpy(), alone.depth.numpy(), rest.alpha.numpy(),
-                                     rest.depth.numpy(), depth, self.gcfg.visible_depth_tol)
-        return amodal.numpy(), visible
+        amodal = (alone.alpha > a).numpy()
+        if depth is None or self.gcfg.visible_depth_tol <= 0:
+            return amodal, visible, None if depth is None else visible.copy()
+        others = torch.ones(N, dtype=torch.bool)
+        others[torch.from_numpy(ids)] = False
+        rest = rasterize(*args, member, cam, subset=others)
+        return amodal, visible, refine_visible(visible, alone.alpha.numpy(), alone.depth.numpy(), rest.alpha.numpy(),
+                                               rest.depth.numpy(), depth, self.gcfg.visible_depth_tol)
