@@ -153,17 +153,19 @@ def _add_bag_args(p) -> None:
 
 def _camera_from_args(args, grounder, result):
     """The camera masks are rendered for: --view I (a keyframe), --pose FILE (JSON with K,
-    cam_to_world [OpenCV axes], width, height), or the result's reference view."""
+    cam_to_world [OpenCV axes], width, height), or the result's reference view. Returns (K,
+    cam_to_world, width, height, depth): a keyframe's own depth image, which the visible mask then
+    follows as the node's does its current frame's; None for --pose."""
     if args.pose:
         from .io.camera_json import read_camera_json
 
-        return read_camera_json(args.pose)
+        return (*read_camera_json(args.pose), None)
     kfs = {kf.index: kf for kf in grounder.mapper.keyframes}
     idx = args.view if args.view is not None else result.reference_view
     if idx not in kfs:
         raise ValueError(f"--view {idx}: not a keyframe of this map; keyframes: {sorted(kfs)[:20]}...")
     kf = kfs[idx]
-    return kf.K, kf.cam_to_world, kf.size[0], kf.size[1]
+    return kf.K, kf.cam_to_world, kf.size[0], kf.size[1], kf.depth.numpy()
 
 
 def _grounder_from_args(args, cfg):
@@ -196,8 +198,8 @@ def cmd_ground(args, cfg) -> dict:
     res = grounder.ground(args.query, mode=args.mode, max_results=args.max_results, cam_to_world=c2w)
     out = res.to_json()
     if res.success and (args.out or args.view is not None or args.pose):
-        K, c2w, w, h = _camera_from_args(args, grounder, res)
-        amodal, visible = grounder.masks(res, K, c2w, w, h)
+        K, c2w, w, h, depth = _camera_from_args(args, grounder, res)
+        amodal, visible = grounder.masks(res, K, c2w, w, h, depth)
         out["masks"] = {"width": w, "height": h, "amodal_pixels": int(amodal.sum()), "visible_pixels": int(visible.sum())}
         if args.out:
             from .viz.grounding import write_grounding_pngs
@@ -328,8 +330,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("map", help="map file from rg map --supervise --train-field S")
     p.add_argument("query", help="explicit ('coffee mug') or implicit ('something to drink hot tea from')")
     cam = p.add_mutually_exclusive_group()
-    cam.add_argument("--view", type=int, help="the camera: masks are rendered for this keyframe (stream index), "
-                                              "view-dependent words (left of, nearest to me) refer to it")
+    cam.add_argument("--view", type=int, help="the camera: masks are rendered for this keyframe (stream index; the "
+                                              "visible mask follows its depth image), view-dependent words (left of, nearest to me) refer to it")
     cam.add_argument("--pose", help="JSON file: K, cam_to_world (OpenCV axes), width, height")
     p.add_argument("--mode", default="auto", choices=("auto", "explicit", "implicit"))
     p.add_argument("--max-results", type=_positive, default=1, help="several instances ('the cups')")

@@ -36,10 +36,27 @@ def test_an_occluder_the_map_holds_removes_its_pixels():
 
 
 def test_rim_pixels_join_only_where_the_group_covers_them():
+    """Col 10 holds the object, but the group barely reaches it and the rest of the map (another
+    group's Gaussians) renders that same surface: depth cannot decide, col 10 stays out."""
     truth, depth, rendered, (ga, gd, ra, rd) = _square_scene()
     ga[:, 10] = 0.05                                    # the group barely reaches col 10
+    rd[:, 10] = 1.0                                     # ... and the rest holds its surface
     out = refine_visible(rendered, ga, gd, ra, rd, depth, rel_tol=0.03)
     assert not out[:, 10].any() and not out[:, 20].any()
+
+
+def test_an_unmapped_rim_that_continues_the_object_joins():
+    """The map holds nothing of col 10 but the wall behind it (the group missed the object's rim): its
+    readings lie in front of the wall and continue the mask's, so it joins; rows where something
+    unmapped stands far in front (0.5 m, not continuing the object) stay out, as does col 9 (the wall,
+    not touching the mask)."""
+    truth, depth, rendered, (ga, gd, ra, rd) = _square_scene()
+    ga[:, 9:11] = 0.0
+    out = refine_visible(rendered, ga, gd, ra, rd, depth, rel_tol=0.03)
+    np.testing.assert_array_equal(out, truth)
+    depth[8:12, 10] = 0.5                               # an unmapped occluder before the rim
+    out = refine_visible(rendered, ga, gd, ra, rd, depth, rel_tol=0.03)
+    assert not out[8:12, 10].any() and out[12:16, 10].all() and not out[:, 9].any()
 
 
 def test_surfaces_too_close_to_tell_apart_keep_the_rendered_answer():

@@ -1,7 +1,10 @@
 """Visible masks sharpened by the camera's own depth image. Near the mask, each pixel with a reading
 goes to whichever surface of the map its sensor depth is nearer: the group's (rendered alone) or the
 rest of the map's (rendered without the group); where the two are too close in depth to tell apart
-(an object's foot on the table) the rendered answer stands (docs/pipeline.md, "Grounding")."""
+(an object's foot on the table) the rendered answer stands. A pixel touching the mask whose reading
+lies in front of the rest's surface and continues the reading of a mask pixel that depth placed on
+the group is the object's own surface that the map has not covered: it joins (docs/pipeline.md,
+"Grounding")."""
 from __future__ import annotations
 
 import numpy as np
@@ -16,8 +19,10 @@ def refine_visible(visible: np.ndarray, group_alpha: np.ndarray, group_depth: np
     reading). Where the two rendered surfaces lie more than max(abs_tol, rel_tol * the group's depth)
     apart (or the rest covers nothing there), a mask pixel whose reading is nearer the rest's surface
     leaves the mask, and a pixel touching the mask whose reading is nearer the group's (covered with
-    alpha > rim_alpha) joins it. Pixels without a reading, or where the surfaces cannot be told
-    apart, keep the rendered answer."""
+    alpha > rim_alpha) joins it, and so does one whose reading lies in front of the rest's surface
+    by more than that tolerance and within it of the reading of a 4-neighbour mask pixel that is
+    nearer the group's surface (a rim the map missed). Pixels without a reading, or where the surfaces
+    cannot be told apart, keep the rendered answer."""
     visible = np.asarray(visible, bool)
     if np.shape(depth) != visible.shape:
         raise ValueError(f"refine_visible: depth image is {np.shape(depth)[1]}x{np.shape(depth)[0]} but the mask "
@@ -36,6 +41,20 @@ def refine_visible(visible: np.ndarray, group_alpha: np.ndarray, group_depth: np
         g, r = surface(group_alpha, group_depth), surface(rest_alpha, rest_depth)
         apart = np.isfinite(g) & ~(np.abs(g - r) <= np.maximum(abs_tol, rel_tol * np.where(np.isfinite(g), g, 0.0)))
         nearer_group = np.abs(d - g) < np.abs(d - r)
+        tol = np.maximum(abs_tol, rel_tol * d)                                          # [H, W] metres
+        unmapped = reading & (d < r - tol)          # in front of all the rest renders there (r: inf = none)
     decide = reading & apart
     out = visible & ~(decide & ~nearer_group)
-    return out | (binary_dilation(visible) & decide & nearer_group & (np.asarray(group_alpha) > rim_alpha))
+    out |= binary_dilation(visible) & decide & nearer_group & (np.asarray(group_alpha) > rim_alpha)
+    return out | (unmapped & ~out & _continues(out & decide & nearer_group, d, tol))
+
+
+def _continues(mask: np.ndarray, d: np.ndarray, tol: np.ndarray) -> np.ndarray:
+    """[H, W] bool: pixels with a 4-neighbour in `mask` whose reading d (0: none) lies within tol of theirs."""
+    H, W = mask.shape
+    md = np.pad(np.where(mask, d, 0.0), 1)                                                # [H+2, W+2]
+    hit = np.zeros((H, W), bool)
+    for dy, dx in ((0, 1), (2, 1), (1, 0), (1, 2)):
+        nd = md[dy:dy + H, dx:dx + W]
+        hit |= (nd > 0) & (np.abs(d - nd) < tol)
+    return hit
