@@ -331,7 +331,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("query", help="explicit ('coffee mug') or implicit ('something to drink hot tea from')")
     cam = p.add_mutually_exclusive_group()
     cam.add_argument("--view", type=int, help="the camera: masks are rendered for this keyframe (stream index; the "
-                                              "visible mask follows its depth image), view-dependent words (left of, nearest to me) refer to it")
+                                              "visible mask follows its depth image), view-dependent words (left of, "
+                                              "nearest to me) refer to it")
     cam.add_argument("--pose", help="JSON file: K, cam_to_world (OpenCV axes), width, height")
     p.add_argument("--mode", default="auto", choices=("auto", "explicit", "implicit"))
     p.add_argument("--max-results", type=_positive, default=1, help="several instances ('the cups')")

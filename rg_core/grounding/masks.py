@@ -46,7 +46,7 @@ def refine_visible(visible: np.ndarray, group_alpha: np.ndarray, group_depth: np
     decide = reading & apart
     out = visible & ~(decide & ~nearer_group)
     out |= binary_dilation(visible) & decide & nearer_group & (np.asarray(group_alpha) > rim_alpha)
-    return out | (unmapped & ~out & _continues(out & decide & nearer_group, d, tol))
+    return out | (unmapped & _continues(out & decide & nearer_group, d, tol))
 
 
 def _continues(mask: np.ndarray, d: np.ndarray, tol: np.ndarray) -> np.ndarray:
