@@ -200,10 +200,10 @@ def cmd_ground(args, cfg) -> dict:
     if res.success and (args.out or args.view is not None or args.pose):
         K, c2w, w, h, depth = _camera_from_args(args, grounder, res)
         amodal, visible = grounder.masks(res, K, c2w, w, h, depth)
-        out["masks"] = {"width": w, "height": h, "amodal_pixels": int(amodal.sum()), "visible_pixels": int(visible.sum())}
-        if args.out:
-            from .viz.grounding import write_grounding_pngs
+        from .viz.grounding import mask_summary, write_grounding_pngs
 
+        out["masks"] = mask_summary(amodal, visible, depth)
+        if args.out:
             out["pictures"] = write_grounding_pngs(grounder, res, K, c2w, w, h, amodal, visible, Path(args.out))
     return out
 

@@ -9,7 +9,7 @@ import time
 import numpy as np
 
 from ..grounding.boxes import box_iou_aabb
-from ..io.images import SceneError
+from ..io.scene import depth_or_none
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -34,7 +34,7 @@ def evaluate_queries(grounder, scene, implicit_per_object: int = 1, min_visible_
 
     by_id = {o.id: o for o in scene.objects}
     views = scene.test if views is None else views
-    cache = [(f, f.load_visible_mask(), _depth_or_none(f)) for f in views]
+    cache = [(f, f.load_visible_mask(), depth_or_none(f)) for f in views]
     jobs: dict[tuple[str, str], list[int]] = {}   # (kind, text) -> the objects it is asked of
     for q in scene.queries:
         if q.object_id in by_id:
@@ -168,13 +168,6 @@ def _with_depth(rows: list[dict]) -> float:
     with its current frame); nan when no view has depth."""
     v = [r["iou_visible_depth"] for r in rows if r.get("iou_visible_depth") is not None]
     return round(100 * float(np.mean(v)), 2) if v else float("nan")
-
-
-def _depth_or_none(frame) -> np.ndarray | None:
-    try:
-        return frame.load_depth()
-    except SceneError:
-        return None
 
 
 def _amodal(rows: list[dict]) -> float:

@@ -142,6 +142,15 @@ class Scene:
 # ReasoningGD reader / writer
 
 
+def depth_or_none(frame) -> np.ndarray | None:
+    """A frame's depth image [H, W] metres, or None where the frame has none (what the visible mask
+    then follows: the render alone)."""
+    try:
+        return frame.load_depth()
+    except SceneError:
+        return None
+
+
 def _load_json(path: Path):
     if not path.is_file():
         raise SceneError(f"{path}: file not found")

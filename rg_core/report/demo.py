@@ -9,10 +9,11 @@ from pathlib import Path
 from ..config import RGConfig
 from ..grounding.build import build_grounder
 from ..io.captures import read_scene
+from ..io.scene import depth_or_none
 from ..map.store import save_map
 from ..synth.generator import default_objects_dir, generate_scene
 from ..viz.contact_sheet import write_contact_sheet
-from ..viz.grounding import write_grounding_pngs
+from ..viz.grounding import mask_summary, write_grounding_pngs
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +44,9 @@ def run_demo(cfg: RGConfig, out: Path, progress: bool = True) -> dict:
             if res.success:
                 f = scene.test[0] if scene.test else scene.train[0]
                 W, H = f.intrinsics.width, f.intrinsics.height
-                amodal, visible = grounder.masks(res, f.intrinsics.K, f.cam_to_world, W, H)
+                depth = depth_or_none(f)   # the visible mask follows the view's depth, as the node's does
+                amodal, visible = grounder.masks(res, f.intrinsics.K, f.cam_to_world, W, H, depth)
+                a["masks"] = mask_summary(amodal, visible, depth)
                 a["pictures"] = write_grounding_pngs(grounder, res, f.intrinsics.K, f.cam_to_world, W, H, amodal,
                                                      visible, out / f"answer_{kind}")
             log.info("%s: %r -> %s (%s)", kind, text, res.target or "-", "ok" if res.success else res.message)
