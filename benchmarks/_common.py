@@ -190,3 +190,19 @@ def code_worker(script: str, code: Path, args: list[str], timeout: float, name: 
     if res.returncode != 0:
         raise RuntimeError(f"{name} worker ({code}) failed: {res.stderr[-2000:]}")
     return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def rg_json(*args: str, timeout: float = 7200) -> dict:
+    """One `rg ... --json --quiet` process (this Python, this checkout's rg_core) -> its JSON, with the
+    wall seconds it took as "wall_s"; a failure raises with the end of its stderr."""
+    import json
+    import subprocess
+
+    t = time.perf_counter()
+    out = subprocess.run([sys.executable, "-m", "rg_core.cli", *args, "--json", "--quiet"], capture_output=True,
+                         text=True, timeout=timeout)
+    if out.returncode != 0:
+        raise RuntimeError(f"rg {' '.join(args)} failed ({out.returncode}): {out.stderr[-2000:]}")
+    d = json.loads(out.stdout)
+    d["wall_s"] = round(time.perf_counter() - t, 1)
+    return d

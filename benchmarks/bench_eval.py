@@ -18,27 +18,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from _common import add_output_flags, finish  # noqa: E402
-
-
-def rg(*args: str, timeout: float = 7200) -> dict:
-    """One `rg ... --json --quiet` process -> its JSON, with the wall seconds it took."""
-    t = time.perf_counter()
-    out = subprocess.run([sys.executable, "-m", "rg_core.cli", *args, "--json", "--quiet"], capture_output=True,
-                         text=True, timeout=timeout)
-    if out.returncode != 0:
-        raise RuntimeError(f"rg {' '.join(args)} failed ({out.returncode}): {out.stderr[-2000:]}")
-    d = json.loads(out.stdout)
-    d["wall_s"] = round(time.perf_counter() - t, 1)
-    return d
+from _common import add_output_flags, finish, rg_json as rg  # noqa: E402
 
 
 def eval_row(name: str, scene: Path, supervision: str, ablation: bool = False) -> dict:

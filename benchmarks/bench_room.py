@@ -24,29 +24,14 @@ per step, mIoU of the two synthetic scenes).
 from __future__ import annotations
 
 import argparse
-import json
 import re
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from _common import add_output_flags, finish, pyplot, save_figure  # noqa: E402
-
-
-def rg(*args: str, timeout: float = 7200) -> dict:
-    """One `rg ... --json --quiet` process -> its JSON, with the wall seconds it took."""
-    t = time.perf_counter()
-    out = subprocess.run([sys.executable, "-m", "rg_core.cli", *args, "--json", "--quiet"], capture_output=True,
-                         text=True, timeout=timeout)
-    if out.returncode != 0:
-        raise RuntimeError(f"rg {' '.join(args)} failed ({out.returncode}): {out.stderr[-2000:]}")
-    d = json.loads(out.stdout)
-    d["wall_s"] = round(time.perf_counter() - t, 1)
-    return d
+from _common import add_output_flags, finish, rg_json as rg, pyplot, save_figure  # noqa: E402
 
 
 def scene_rows(name: str, scene: Path, work: Path, oracle: bool, config: Path | None = None) -> dict:
