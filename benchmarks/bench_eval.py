@@ -11,8 +11,7 @@ YCB-Video, with ground-truth 2D inputs (oracle) and with the offline default mod
   view's depth (what the node streams), amodal, localization, implicit visible, boxes with IoU >= 0.5,
   field steps, median query seconds, wall seconds; on the synthetic scenes also the paper's ablation
   (`rg eval --ablation`: relevancy > 0.5 alone, with the reasoner's target, with grouping).
-Every step runs as its own `rg` process, one after the other; the resolved command lines are in the
-JSON.
+Every step runs as its own `rg` process, one after the other. Writes OUT/eval.json (the rows).
 """
 from __future__ import annotations
 

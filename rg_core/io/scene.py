@@ -138,10 +138,6 @@ class Scene:
         return sorted(self.train + self.test, key=lambda f: f.index)
 
 
-# ---------------------------------------------------------------------------------------------
-# ReasoningGD reader / writer
-
-
 def depth_or_none(frame) -> np.ndarray | None:
     """A frame's depth image [H, W] metres, or None where the frame has none (what the visible mask
     then follows: the render alone)."""
@@ -149,6 +145,10 @@ def depth_or_none(frame) -> np.ndarray | None:
         return frame.load_depth()
     except SceneError:
         return None
+
+
+# ---------------------------------------------------------------------------------------------
+# ReasoningGD reader / writer
 
 
 def _load_json(path: Path):
