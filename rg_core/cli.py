@@ -154,18 +154,18 @@ def _add_bag_args(p) -> None:
 def _camera_from_args(args, grounder, result):
     """The camera masks are rendered for: --view I (a keyframe), --pose FILE (JSON with K,
     cam_to_world [OpenCV axes], width, height), or the result's reference view. Returns (K,
-    cam_to_world, width, height, depth): a keyframe's own depth image, which the visible mask then
-    follows as the node's does its current frame's; None for --pose."""
+    cam_to_world, width, height, depth, image): a keyframe's own depth and colour images, which the
+    visible mask then follows as the node's does its current frame's; None for --pose."""
     if args.pose:
         from .io.camera_json import read_camera_json
 
-        return (*read_camera_json(args.pose), None)
+        return (*read_camera_json(args.pose), None, None)
     kfs = {kf.index: kf for kf in grounder.mapper.keyframes}
     idx = args.view if args.view is not None else result.reference_view
     if idx not in kfs:
         raise ValueError(f"--view {idx}: not a keyframe of this map; keyframes: {sorted(kfs)[:20]}...")
     kf = kfs[idx]
-    return kf.K, kf.cam_to_world, kf.size[0], kf.size[1], kf.depth.numpy()
+    return kf.K, kf.cam_to_world, kf.size[0], kf.size[1], kf.depth.numpy(), kf.rgb.numpy()
 
 
 def _grounder_from_args(args, cfg):
@@ -198,11 +198,11 @@ def cmd_ground(args, cfg) -> dict:
     res = grounder.ground(args.query, mode=args.mode, max_results=args.max_results, cam_to_world=c2w)
     out = res.to_json()
     if res.success and (args.out or args.view is not None or args.pose):
-        K, c2w, w, h, depth = _camera_from_args(args, grounder, res)
-        amodal, visible = grounder.masks(res, K, c2w, w, h, depth)
+        K, c2w, w, h, depth, image = _camera_from_args(args, grounder, res)
+        amodal, visible = grounder.masks(res, K, c2w, w, h, depth, image)
         from .viz.grounding import mask_summary, write_grounding_pngs
 
-        out["masks"] = mask_summary(amodal, visible, depth)
+        out["masks"] = mask_summary(amodal, visible, depth, image)
         if args.out:
             out["pictures"] = write_grounding_pngs(grounder, res, K, c2w, w, h, amodal, visible, Path(args.out))
     return out

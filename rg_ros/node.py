@@ -52,7 +52,7 @@ class GroundingNode(TFInput, Node):
             torch.set_num_threads(p.torch_threads)
         self.worker = self._make_worker(p)
         self._state_lock = threading.Lock()
-        self._camera: tuple | None = None   # (K, width, height, cam_to_world, frame_id, stamp, depth) of the latest frame
+        self._camera: tuple | None = None   # (K, w, h, cam_to_world, frame_id, stamp, depth, rgb) of the latest frame
         self._last_result: GroundingResult | None = None
         self._last_info_time: float | None = None
         self._last_image_time: float | None = None
@@ -249,7 +249,7 @@ class GroundingNode(TFInput, Node):
 
     def _submit(self, frame: Frame, stamp_msg, w: int, h: int) -> None:
         with self._state_lock:
-            self._camera = (frame.K, w, h, frame.cam_to_world, frame.frame_id, stamp_msg, frame.depth)
+            self._camera = (frame.K, w, h, frame.cam_to_world, frame.frame_id, stamp_msg, frame.depth, frame.rgb)
         if self.worker.submit(frame):
             self._warn("queue_drop", f"mapping is slower than the input: dropped the oldest queued frame "
                        f"(queue of {self.worker.queue.maxsize}, {self.worker.queue.dropped} dropped)", period=10.0)
@@ -331,9 +331,9 @@ class GroundingNode(TFInput, Node):
             result, cam = self._last_result, self._camera
         if result is None or cam is None or not result.objects:
             return
-        K, w, h, c2w, frame_id, stamp, depth = cam
+        K, w, h, c2w, frame_id, stamp, depth, rgb = cam
         try:
-            masks = self.worker.masks(result, K, c2w, w, h, depth=depth)
+            masks = self.worker.masks(result, K, c2w, w, h, depth=depth, image=rgb)
         except Exception as exc:  # noqa: BLE001
             return self._warn("masks", f"mask rendering failed: {type(exc).__name__}: {exc}")
         if masks is None:

@@ -399,16 +399,17 @@ class MapWorker:
             self.lock.release()
 
     def masks(self, result: GroundingResult, K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int,
-              timeout: float = 0.5, depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+              timeout: float = 0.5, depth: np.ndarray | None = None,
+              image: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
         """(amodal, visible) bool [H, W] of a result from a camera (the visible one sharpened by that
-        camera's depth image [H, W] metres, if given), or None if the map is busy or there is no
-        grounder (e.g. after a reset)."""
+        camera's depth image [H, W] metres and colour image [H, W, 3], if given), or None if the map
+        is busy or there is no grounder (e.g. after a reset)."""
         if self._grounder is None or not self._acquire(timeout):
             return None
         try:
             if self._grounder is None:
                 return None
-            amodal, visible = self._grounder.masks(result, K, cam_to_world, width, height, depth)
+            amodal, visible = self._grounder.masks(result, K, cam_to_world, width, height, depth, image)
             return np.asarray(amodal, bool), np.asarray(visible, bool)
         finally:
             self.lock.release()

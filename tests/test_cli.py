@@ -44,9 +44,10 @@ def test_demo_writes_contact_sheet(tmp_path):
         assert a["query"] and isinstance(a["success"], bool) and a["message"]
         if a["success"]:
             assert a["objects"] and cv2.imread(a["pictures"]["figure"]) is not None
-            # the visible mask follows the view's depth image (synthetic views have one), as the node's does
+            # the visible mask follows the view's depth and colour images (synthetic views have both), as the node's does
             m = a["masks"]
-            assert m["visible_follows_depth"] is True and (m["width"], m["height"]) == (160, 120), m
+            assert m["visible_follows_depth"] is True and m["visible_follows_image"] is True, m
+            assert (m["width"], m["height"]) == (160, 120), m
             assert m["visible_pixels"] == int((cv2.imread(a["pictures"]["visible"], cv2.IMREAD_GRAYSCALE) > 0).sum())
     assert any(a["success"] for a in out["answers"].values()), out["answers"]
     assert (tmp_path / "demo" / "scene.rgmap").is_file()

@@ -277,9 +277,9 @@ def test_visible_mask_follows_the_cameras_depth_image():
 
 
 def test_rg_ground_view_masks_follow_the_keyframes_depth(tmp_path):
-    """`rg ground --view I` renders for keyframe I and hands its depth image to the masks (as the node
-    does its current frame's): the visible mask is the sensed object, not the blob the render bleeds;
-    --pose has no depth image and renders only."""
+    """`rg ground --view I` renders for keyframe I and hands its depth and colour images to the masks
+    (as the node does its current frame's): the visible mask is the sensed object, not the blob the
+    render bleeds; --pose has no images and renders only."""
     import argparse
     import json
 
@@ -293,20 +293,21 @@ def test_rg_ground_view_masks_follow_the_keyframes_depth(tmp_path):
     K = np.array([[100.0, 0, 32], [0, 100.0, 32], [0, 0, 1]])
     obj = np.zeros((64, 64), bool)
     obj[28:36, 28:36] = True
-    mapper.keyframes.append(Keyframe(7, 0.0, np.eye(4), K, torch.zeros(64, 64, 3),
+    rgb = torch.from_numpy(np.repeat(np.where(obj, 0.8, 0.2)[..., None], 3, 2).astype(np.float32))   # a light object
+    mapper.keyframes.append(Keyframe(7, 0.0, np.eye(4), K, rgb,
                                      torch.from_numpy(np.where(obj, 1.0, 2.0).astype(np.float32))))
     z3 = np.zeros(3)
     res = GroundingResult(True, "", objects=[GroundedObject(
         gaussian_ids=np.array([0]), points=np.zeros((1, 3), np.float32), colors=np.zeros((1, 3), np.uint8),
         aabb_min=z3, aabb_max=z3, obb_center=z3, obb_rotation=np.eye(3), obb_extent=z3)])
     g = Grounder(mapper, None, RGConfig())
-    Kv, c2w, w, h, depth = _camera_from_args(argparse.Namespace(pose=None, view=7), g, res)
-    assert (w, h) == (64, 64) and depth is not None
-    _, visible = g.masks(res, Kv, c2w, w, h, depth)
+    Kv, c2w, w, h, depth, image = _camera_from_args(argparse.Namespace(pose=None, view=7), g, res)
+    assert (w, h) == (64, 64) and depth is not None and image.shape == (64, 64, 3)
+    _, visible = g.masks(res, Kv, c2w, w, h, depth, image)
     np.testing.assert_array_equal(visible, obj)
     pose = tmp_path / "cam.json"
     pose.write_text(json.dumps({"K": K.tolist(), "cam_to_world": np.eye(4).tolist(), "width": 64, "height": 64}))
-    *cam, depth = _camera_from_args(argparse.Namespace(pose=str(pose), view=None), g, res)
-    assert depth is None
+    *cam, depth, image = _camera_from_args(argparse.Namespace(pose=str(pose), view=None), g, res)
+    assert depth is None and image is None
     _, raw = g.masks(res, *cam)
     assert (raw & ~obj).sum() > 20

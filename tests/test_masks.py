@@ -1,8 +1,9 @@
-"""Visible masks sharpened by the camera's depth image (rg_core.grounding.masks.refine_visible)."""
+"""Visible masks sharpened by the camera's depth image (rg_core.grounding.masks.refine_visible) and
+snapped to its colour image's edges (snap_to_image)."""
 import numpy as np
 import pytest
 
-from rg_core.grounding.masks import refine_visible
+from rg_core.grounding.masks import refine_visible, snap_to_image
 
 H, W = 24, 32
 
@@ -94,3 +95,51 @@ def test_a_depth_image_of_another_size_is_a_clear_error():
     _, _, rendered, surf = _square_scene()
     with pytest.raises(ValueError, match=r"depth image is 16x12 but the mask is 32x24"):
         refine_visible(rendered, *surf, np.ones((12, 16), np.float32), rel_tol=0.03)
+
+
+def _coloured(truth: np.ndarray) -> np.ndarray:
+    """[H, W, 3] uint8: a red object on a grey wall with some texture (+-10 levels)."""
+    rng = np.random.default_rng(0)
+    img = np.where(truth[..., None], np.array([200, 40, 30]), np.array([120, 120, 120])) + rng.integers(-10, 11, (H, W, 3))
+    return img.astype(np.uint8)
+
+
+def test_a_ragged_rim_snaps_to_the_colour_edge():
+    """The map's silhouette a pixel off here and there (every other row: the object's last column out,
+    the wall's next column in, and a wall pixel of the top row in) comes back onto the object; uint8
+    and float [0, 1] images give the same answer, and a right mask stays."""
+    truth, _, _, _ = _square_scene()
+    ragged = truth.copy()
+    ragged[8:16:2, 19] = False
+    ragged[9:16:2, 20] = True
+    ragged[7, 14] = True
+    img = _coloured(truth)
+    np.testing.assert_array_equal(snap_to_image(ragged, img), truth)
+    np.testing.assert_array_equal(snap_to_image(ragged, img.astype(np.float32) / 255), truth)
+    np.testing.assert_array_equal(snap_to_image(truth, img), truth)
+
+
+def test_without_a_colour_edge_the_mask_only_smooths():
+    """A flat image holds no edge to snap to: a square mask keeps its interior and does not grow."""
+    truth, _, _, _ = _square_scene()
+    out = snap_to_image(truth, np.full((H, W, 3), 90, np.uint8))
+    assert not (out & ~truth).any() and out[9:15, 11:19].all()
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf, 1e30, -1e30])
+def test_non_finite_and_extreme_colours_give_a_mask_not_an_error(bad):
+    truth, _, _, _ = _square_scene()
+    img = _coloured(truth).astype(np.float32) / 255
+    img[0:4] = bad                                        # rows far from the object
+    np.testing.assert_array_equal(snap_to_image(truth, img), truth)
+
+
+def test_an_empty_mask_or_eps_0_is_returned_as_is_and_a_wrong_image_is_a_clear_error():
+    truth, _, rendered, _ = _square_scene()
+    img = _coloured(truth)
+    assert not snap_to_image(np.zeros((H, W), bool), img).any()
+    np.testing.assert_array_equal(snap_to_image(rendered, img, eps=0.0), rendered)
+    with pytest.raises(ValueError, match=r"colour image is \[24, 32\] but the mask is 32x24"):
+        snap_to_image(rendered, img[..., 0])
+    with pytest.raises(ValueError, match=r"colour image is \[12, 16, 3\] but the mask is 32x24"):
+        snap_to_image(rendered, img[::2, ::2])

@@ -307,6 +307,10 @@ class GroundConfig:
     miou_visible_depth), each pixel on and around the visible mask goes to the map surface its reading
     is nearer, the group's or the rest's, where those lie more than this share of the depth apart (at
     least 1 cm); 0: render only."""
+    visible_edge_eps: Annotated[float, Interval(ge=0.0)] = 0.01
+    """With the camera's colour image, the visible mask's rim then snaps to its colour edges: a guided
+    filter of the mask (1 px radius, this regularisation for colours in [0, 1]) thresholded at a half
+    (grounding/masks.py snap_to_image); 0: off. Measured in docs/pipeline.md, "Grounding"."""
     outlier_mads: float = 3.0
     """Group Gaussians farther than this many robust spreads from the group's median are dropped."""
     carve_views: int = 32

@@ -34,7 +34,8 @@ def evaluate_queries(grounder, scene, implicit_per_object: int = 1, min_visible_
 
     by_id = {o.id: o for o in scene.objects}
     views = scene.test if views is None else views
-    cache = [(f, f.load_visible_mask(), depth_or_none(f)) for f in views]
+    cache = [(f, f.load_visible_mask(), d, None if d is None else f.load_rgb())   # RGB-D views: masks follow both
+             for f, d in ((f, depth_or_none(f)) for f in views)]
     jobs: dict[tuple[str, str], list[int]] = {}   # (kind, text) -> the objects it is asked of
     for q in scene.queries:
         if q.object_id in by_id:
@@ -53,14 +54,14 @@ def evaluate_queries(grounder, scene, implicit_per_object: int = 1, min_visible_
                           for i in dict.fromkeys(oids)), key=lambda x: x[0])
         oid = o.id
         right_name = res.target == o.name
-        for f, vis_ids, depth in cache:
+        for f, vis_ids, depth, rgb in cache:
             gt_vis = vis_ids == oid
             if gt_vis.sum() < min_visible_px:
                 continue
             gt_amodal = f.load_complete_mask(oid) if f.has_amodal_masks() else None   # None: not in the data
             W, H = f.intrinsics.width, f.intrinsics.height
             t1 = time.perf_counter()
-            amodal, visible, visible_d = grounder.mask_layers(res, f.intrinsics.K, f.cam_to_world, W, H, depth)
+            amodal, visible, visible_d = grounder.mask_layers(res, f.intrinsics.K, f.cam_to_world, W, H, depth, rgb)
             t_mask = time.perf_counter() - t1
             loc = False
             if res.objects:
@@ -164,8 +165,8 @@ def summarise(rows: list[dict]) -> dict:
 
 
 def _with_depth(rows: list[dict]) -> float:
-    """Visible mIoU (%) with masks sharpened by each test view's own depth image (what the node does
-    with its current frame); nan when no view has depth."""
+    """Visible mIoU (%) with masks sharpened by each test view's own depth and colour images (what the
+    node does with its current frame); nan when no view has depth."""
     v = [r["iou_visible_depth"] for r in rows if r.get("iou_visible_depth") is not None]
     return round(100 * float(np.mean(v)), 2) if v else float("nan")
 

@@ -4,9 +4,11 @@ rest of the map's (rendered without the group); where the two are too close in d
 (an object's foot on the table) the rendered answer stands. A pixel touching the mask whose reading
 lies in front of the rest's surface and continues the reading of a mask pixel that depth placed on
 the group is the object's own surface that the map has not covered: it joins (docs/pipeline.md,
-"Grounding")."""
+"Grounding"). With the camera's colour image the mask's rim then follows the image's colour
+edges (`snap_to_image`)."""
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from scipy.ndimage import binary_dilation
 
@@ -58,3 +60,25 @@ def _continues(mask: np.ndarray, d: np.ndarray, tol: np.ndarray) -> np.ndarray:
         nd = md[dy:dy + H, dx:dx + W]
         hit |= (nd > 0) & (np.abs(d - nd) < tol)
     return hit
+
+
+def snap_to_image(mask: np.ndarray, image: np.ndarray, radius: int = 1, eps: float = 0.01) -> np.ndarray:
+    """mask [H, W] bool; the camera's colour image [H, W, 3] (uint8, or float in [0, 1]; clipped). The
+    mask as 0/1, guided-filtered by the image (He et al. 2010: locally an affine function of the colour
+    within `radius` pixels, `eps` the regularisation), thresholded at a half: a pixel whose mask value
+    disagrees with most of its like-coloured neighbours flips, so a rim the map renders a pixel off
+    here and there (small objects seen from afar) straightens along the colour edge; where the colour
+    is flat the mask only smooths. Non-finite colours count as black."""
+    mask = np.asarray(mask, bool)
+    img = np.asarray(image)
+    if img.ndim != 3 or img.shape[2] != 3 or img.shape[:2] != mask.shape:
+        raise ValueError(f"snap_to_image: colour image is {list(img.shape)} but the mask is {mask.shape[1]}x"
+                         f"{mask.shape[0]}; give the [H, W, 3] image of the camera the mask is rendered for")
+    if radius < 1 or eps <= 0 or not mask.any():
+        return mask.copy()
+    if img.dtype == np.uint8:
+        guide = img.astype(np.float32) / 255.0
+    else:
+        guide = np.clip(np.nan_to_num(img.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0)
+    out = cv2.ximgproc.guidedFilter(np.ascontiguousarray(guide), mask.astype(np.float32), int(radius), float(eps))
+    return out > 0.5

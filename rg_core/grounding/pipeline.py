@@ -23,7 +23,7 @@ from . import confidence, phrases, relations, stages
 from .cache import MapCache
 from .carve import mask_depth_offsets, registration_border
 from .grouping import Groups, cluster_instances
-from .masks import refine_visible
+from .masks import refine_visible, snap_to_image
 from .relevancy import CANONICAL, relevancy_pca
 from ..perception.query import parse_mode, query_problem
 from .result import GroundingResult
@@ -429,26 +429,30 @@ class Grounder:
 
     # ------------------------------------------------------------------------------ masks
 
-    def masks(self, result: GroundingResult, K: np.ndarray, cam_to_world: np.ndarray, width: int,
-              height: int, depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def masks(self, result: GroundingResult, K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int,
+              depth: np.ndarray | None = None, image: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Amodal (the group rendered alone) and visible (the group's share of the blending weight
         in the full render above `ground.visible_share`) masks of a result's groups, also of an
         abstained answer's best guess: two bool [height, width]. With the camera's depth image
-        (`depth` [height, width] metres) the visible mask follows it (`ground.visible_depth_tol`)."""
-        amodal, visible, with_depth = self.mask_layers(result, K, cam_to_world, width, height, depth)
-        return amodal, visible if with_depth is None else with_depth
+        (`depth` [height, width] metres) the visible mask follows it (`ground.visible_depth_tol`), and
+        with its colour image (`image` [height, width, 3]) its rim snaps to the colour edges
+        (`ground.visible_edge_eps`)."""
+        amodal, visible, sensed = self.mask_layers(result, K, cam_to_world, width, height, depth, image)
+        return amodal, visible if sensed is None else sensed
 
     @torch.no_grad()
-    def mask_layers(self, result: GroundingResult, K: np.ndarray, cam_to_world: np.ndarray, width: int,
-                    height: int, depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        """`masks` from one set of renders: amodal, visible as rendered, and visible following
-        `depth` (None without it): what `rg eval` scores side by side."""
+    def mask_layers(self, result: GroundingResult, K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int,
+                    depth: np.ndarray | None = None,
+                    image: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """`masks` from one set of renders: amodal, visible as rendered, and visible following the
+        camera's `depth` and `image` (None without either): what `rg eval` scores side by side."""
         g = self.mapper.gaussians
         N = len(g)
         empty = np.zeros((height, width), bool)
+        sensed = depth is not None or image is not None
         ids = np.concatenate([o.gaussian_ids for o in result.objects]) if result.objects else np.zeros(0, np.int64)
         if not len(ids) or not N:
-            return empty, empty.copy(), None if depth is None else empty.copy()
+            return empty, empty.copy(), empty.copy() if sensed else None
         if int(ids.max()) >= N:
             raise ValueError(f"masks: the result names Gaussian {int(ids.max())} but the map now has {N}; ground again")
         cam = self.mapper.camera(K, cam_to_world, width, height)
@@ -461,10 +465,15 @@ class Grounder:
         share = full.channels[..., 0] / full.alpha.clamp(min=1e-6)
         visible = ((full.alpha > a) & (share > self.gcfg.visible_share)).numpy()
         amodal = (alone.alpha > a).numpy()
-        if depth is None or self.gcfg.visible_depth_tol <= 0:
-            return amodal, visible, None if depth is None else visible.copy()
-        others = torch.ones(N, dtype=torch.bool)
-        others[torch.from_numpy(ids)] = False
-        rest = rasterize(*args, member, cam, subset=others)
-        return amodal, visible, refine_visible(visible, alone.alpha.numpy(), alone.depth.numpy(), rest.alpha.numpy(),
-                                               rest.depth.numpy(), depth, self.gcfg.visible_depth_tol)
+        if not sensed:
+            return amodal, visible, None
+        out = visible
+        if depth is not None and self.gcfg.visible_depth_tol > 0:
+            others = torch.ones(N, dtype=torch.bool)
+            others[torch.from_numpy(ids)] = False
+            rest = rasterize(*args, member, cam, subset=others)
+            out = refine_visible(visible, alone.alpha.numpy(), alone.depth.numpy(), rest.alpha.numpy(),
+                                 rest.depth.numpy(), depth, self.gcfg.visible_depth_tol)
+        if image is not None and self.gcfg.visible_edge_eps > 0:
+            out = snap_to_image(out, image, eps=self.gcfg.visible_edge_eps)
+        return amodal, visible, out.copy() if out is visible else out

@@ -44,9 +44,9 @@ def run_demo(cfg: RGConfig, out: Path, progress: bool = True) -> dict:
             if res.success:
                 f = scene.test[0] if scene.test else scene.train[0]
                 W, H = f.intrinsics.width, f.intrinsics.height
-                depth = depth_or_none(f)   # the visible mask follows the view's depth, as the node's does
-                amodal, visible = grounder.masks(res, f.intrinsics.K, f.cam_to_world, W, H, depth)
-                a["masks"] = mask_summary(amodal, visible, depth)
+                depth, rgb = depth_or_none(f), f.load_rgb()   # the visible mask follows the view, as the node's does
+                amodal, visible = grounder.masks(res, f.intrinsics.K, f.cam_to_world, W, H, depth, rgb)
+                a["masks"] = mask_summary(amodal, visible, depth, rgb)
                 a["pictures"] = write_grounding_pngs(grounder, res, f.intrinsics.K, f.cam_to_world, W, H, amodal,
                                                      visible, out / f"answer_{kind}")
             log.info("%s: %r -> %s (%s)", kind, text, res.target or "-", "ok" if res.success else res.message)

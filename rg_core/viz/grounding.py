@@ -6,12 +6,13 @@ from pathlib import Path
 import numpy as np
 
 
-def mask_summary(amodal: np.ndarray, visible: np.ndarray, depth: np.ndarray | None) -> dict:
+def mask_summary(amodal: np.ndarray, visible: np.ndarray, depth: np.ndarray | None,
+                 image: np.ndarray | None = None) -> dict:
     """What `rg ground` and `rg demo` report of an answer's masks [H, W]: size, pixels, and whether the
-    visible mask followed a depth image (else it is the render's alone)."""
+    visible mask followed a depth image and a colour image (else it is the render's alone)."""
     h, w = visible.shape
     return {"width": w, "height": h, "amodal_pixels": int(amodal.sum()), "visible_pixels": int(visible.sum()),
-            "visible_follows_depth": depth is not None}
+            "visible_follows_depth": depth is not None, "visible_follows_image": image is not None}
 
 
 def write_grounding_pngs(grounder, result, K, c2w, width: int, height: int, amodal: np.ndarray,
