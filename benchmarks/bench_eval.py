@@ -8,8 +8,8 @@ YCB-Video, with ground-truth 2D inputs (oracle) and with the offline default mod
 - Each scene: `rg eval SCENE --supervision oracle` and `--supervision default` (each maps, supervises,
   trains the field until it converges, then asks every explicit query and the first implicit one
   per object on every test view). Rows: explicit visible mIoU as rendered and following each test
-  view's depth (what the node streams), amodal, localization, implicit visible, boxes with IoU >= 0.5,
-  field steps, median query seconds, wall seconds; on the synthetic scenes also the paper's ablation
+  view's depth and colour (what the node streams), amodal, localization, implicit visible, boxes with
+  IoU >= 0.5, field steps, median query seconds, wall seconds; on the synthetic scenes also the paper's ablation
   (`rg eval --ablation`: relevancy > 0.5 alone, with the reasoner's target, with grouping).
 Every step runs as its own `rg` process, one after the other. Writes OUT/eval.json (the rows).
 """
@@ -55,7 +55,7 @@ def to_rows(report: dict) -> tuple[list[dict], str]:
     seeds = ", ".join(str(s) for s in report["seeds"])
     return rows, (f"rg synth defaults (100 views 320x240, 7 objects; seed {seeds}) and {report['ycbv']} (real, 17 train "
                   "/ 3 test views); rg eval with every default, oracle = ground-truth 2D masks and names, default = the "
-                  "offline models; visible depth: masks following each test view's depth image")
+                  "offline models; visible depth: masks following each test view's depth and colour images")
 
 
 def main(argv=None) -> int:

@@ -10,8 +10,8 @@
   and the same seed as one table-top scene
   (`rg synth`, 7 objects, 100 views) for the reference figure. Each: `rg map` (Gaussians, keyframes,
   seconds, peak RSS, test PSNR) and `rg eval --map` of that map with oracle supervision (explicit /
-  implicit visible mIoU, and explicit with masks sharpened by each test view's depth; first_answer_s:
-  supervision and field training on the built map). Target: the room's explicit mIoU within 5 points
+  implicit visible mIoU, and explicit with masks sharpened by each test view's depth and colour
+  images, labelled "depth"; first_answer_s: supervision and field training on the built map). Target: the room's explicit mIoU within 5 points
   of the table top's.
 - --more-seeds: for each, its table top and head-height room again (the gap is one figure per seed).
 - --hires WxH (default 640x480, "none" skips): the table top and head-height room of --seed rendered at
