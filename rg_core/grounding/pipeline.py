@@ -467,7 +467,7 @@ class Grounder:
         amodal = (alone.alpha > a).numpy()
         if not sensed:
             return amodal, visible, None
-        out = visible
+        out = visible.copy()
         if depth is not None and self.gcfg.visible_depth_tol > 0:
             others = torch.ones(N, dtype=torch.bool)
             others[torch.from_numpy(ids)] = False
@@ -476,4 +476,4 @@ class Grounder:
                                  rest.depth.numpy(), depth, self.gcfg.visible_depth_tol)
         if image is not None and self.gcfg.visible_edge_eps > 0:
             out = snap_to_image(out, image, eps=self.gcfg.visible_edge_eps)
-        return amodal, visible, out.copy() if out is visible else out
+        return amodal, visible, out
