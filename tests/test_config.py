@@ -30,6 +30,7 @@ def test_partial_override_keeps_other_defaults(tmp_path):
     ({"synth": 5}, "synth"),
     ({"map": {"near": float("nan")}}, "map.near"),
     ({"field": {"seconds": float("inf")}}, "field.seconds"),
+    ({"ground": {"outlier_mads": -1.0}}, "ground.outlier_mads"),
 ])
 def test_bad_keys_and_types_name_the_key(data, key):
     with pytest.raises(ConfigError) as info:

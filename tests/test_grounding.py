@@ -27,6 +27,22 @@ def test_explicit_queries_find_each_object(grounder, synth_scene):
     assert min(ious) > 0.05 and np.mean(ious) > 0.15, ious
 
 
+def test_groups_keep_the_members_a_robust_spread_cut_would_drop(grounder, synth_scene, monkeypatch):
+    """The 3-MAD cut is off by default (it took small objects' lopsided parts); with it on, the
+    group is the default group minus exactly what robust_inliers drops."""
+    from rg_core.grounding.boxes import robust_inliers
+    assert grounder.gcfg.outlier_mads == 0.0
+    means = grounder.mapper.gaussians.means.detach().numpy()
+    whole = {o.name: grounder.ground(o.name, mode="explicit").objects[0].gaussian_ids for o in synth_scene.objects}
+    monkeypatch.setattr(grounder.gcfg, "outlier_mads", 1.0)
+    cut_any = False
+    for name, ids in whole.items():
+        cut = grounder.ground(name, mode="explicit").objects[0].gaussian_ids
+        np.testing.assert_array_equal(cut, ids[robust_inliers(means[ids], 1.0)])
+        cut_any |= len(cut) < len(ids)
+    assert cut_any, "at 1 MAD some group should lose members: the default must not have cut them already"
+
+
 def test_masks_on_test_views(grounder, synth_scene):
     ev = evaluate_queries(grounder, synth_scene, implicit_per_object=0)
     print(ev["explicit"], ev["box_iou"])

@@ -183,7 +183,7 @@ def objects(g, ref: Reference, pk: Peak, found: list[tuple[np.ndarray, float]], 
             confidence: float) -> list[GroundedObject]:
     """Each candidate set voted on by the target's masks (carve what they see elsewhere; the first
     set also takes what several see inside), cut to its piece in space (the first: the piece the
-    reference mask sees most, else the one under the peak), outliers dropped, boxed."""
+    reference mask sees most, else the one under the peak), outliers dropped (with `outlier_mads`), boxed."""
     gs = g.mapper.gaussians
     means, colors = gs.means.detach().numpy(), (gs.colors.detach().clamp(0, 1) * 255).round().byte().numpy()
     kf = ref.keyframe
@@ -216,7 +216,8 @@ def objects(g, ref: Reference, pk: Peak, found: list[tuple[np.ndarray, float]], 
                                 .max(1).values.numpy(), border_px=border)
                 support, against = rv.inside > 0, rv.outside > 0
             ids = ids[connected_to(means[ids], pk.anchor if n == 0 and pk.has_depth else None, link, support, against)]
-        ids = ids[robust_inliers(means[ids], g.gcfg.outlier_mads)]
+        if g.gcfg.outlier_mads > 0:
+            ids = ids[robust_inliers(means[ids], g.gcfg.outlier_mads)]
         if not len(ids):
             continue
         lo, hi, c, R, ext = group_boxes(means[ids])
