@@ -1,9 +1,10 @@
-"""Visible masks sharpened by the camera's depth image (rg_core.grounding.masks.refine_visible) and
-snapped to its colour image's edges (snap_to_image)."""
+"""Visible masks sharpened by the camera's depth image (rg_core.grounding.masks.refine_visible),
+rid of occluders the map renders too thin (leave_occluded) and snapped to its colour image's edges
+(snap_to_image)."""
 import numpy as np
 import pytest
 
-from rg_core.grounding.masks import refine_visible, snap_to_image
+from rg_core.grounding.masks import leave_occluded, refine_visible, snap_to_image
 
 H, W = 24, 32
 
@@ -95,6 +96,83 @@ def test_a_depth_image_of_another_size_is_a_clear_error():
     _, _, rendered, surf = _square_scene()
     with pytest.raises(ValueError, match=r"depth image is 16x12 but the mask is 32x24"):
         refine_visible(rendered, *surf, np.ones((12, 16), np.float32), rel_tol=0.03)
+
+
+K_CAM = np.array([[20.0, 0.0, 16.0], [0.0, 20.0, 12.0], [0.0, 0.0, 1.0]])
+
+
+def _splats(rows, cols, z, scale):
+    """One round Gaussian on each pixel's ray at depth z (camera = world frame)."""
+    v, u = np.meshgrid(np.arange(*rows), np.arange(*cols), indexing="ij")
+    pts = np.stack([(u - 16.0) * z / 20.0, (v - 12.0) * z / 20.0, np.full(u.shape, z)], -1).reshape(-1, 3)
+    return pts, np.full((len(pts), 3), scale)
+
+
+def _occluded_scene(occluder_z=0.8):
+    """The group: a plate of Gaussians at 1.0 m on rows 8-15, cols 10-19, rendered there with alpha
+    0.9; a thin occluder of the rest's Gaussians at occluder_z before cols 10-13, which the sensor
+    sees; the mask (as rendered) holds the whole plate."""
+    gp, gs = _splats((8, 16), (10, 20), 1.0, 0.03)
+    op, os_ = _splats((8, 16), (10, 14), occluder_z, 0.03)
+    means, scales = np.r_[gp, op], np.r_[gs, os_]
+    quats = np.tile([1.0, 0.0, 0.0, 0.0], (len(means), 1))
+    member = np.r_[np.ones(len(gp), bool), np.zeros(len(op), bool)]
+    mask = np.zeros((H, W), bool)
+    mask[8:16, 10:20] = True
+    depth = np.where(mask, 1.0, 2.0)
+    depth[8:16, 10:14] = occluder_z
+    ga = np.where(mask, 0.9, 0.0)
+    gd = np.where(mask, 1.0, 0.0)
+    return mask, depth, ga, gd, (means, scales, quats, np.full(len(means), 0.9)), member
+
+
+def test_a_thin_occluder_the_rest_holds_leaves_the_mask():
+    mask, depth, ga, gd, gs, member = _occluded_scene()
+    out = leave_occluded(mask, depth, ga, gd, K_CAM, np.eye(4), gs, member, rel_tol=0.03)
+    expect = mask.copy()
+    expect[8:16, 10:14] = False
+    np.testing.assert_array_equal(out, expect)
+
+
+def test_readings_in_front_that_the_group_holds_or_nothing_holds_stay():
+    """The group's own Gaussians at the reading (its rendered depth lies behind them), an unmapped
+    occluder (no Gaussian near the reading) and one within the tolerance all keep the mask."""
+    mask, depth, ga, gd, (means, scales, quats, op), member = _occluded_scene()
+    out = leave_occluded(mask, depth, ga, gd, K_CAM, np.eye(4), (means, scales, quats, op), ~member, rel_tol=0.03)
+    np.testing.assert_array_equal(out, mask)            # the plate behind is the rest, the occluder the group
+    keep = np.ones(len(means), bool)
+    keep[member.sum():] = False                         # the occluder is not in the map at all
+    out = leave_occluded(mask, depth, ga, gd, K_CAM, np.eye(4), tuple(t[keep] for t in (means, scales, quats, op)),
+                         member[keep], rel_tol=0.03)
+    np.testing.assert_array_equal(out, mask)
+    mask2, depth2, ga2, gd2, gs2, member2 = _occluded_scene(occluder_z=0.985)
+    out = leave_occluded(mask2, depth2, ga2, gd2, K_CAM, np.eye(4), gs2, member2, rel_tol=0.03)
+    np.testing.assert_array_equal(out, mask2)           # 1.5 cm in front: within max(1 cm, 3 %)
+
+
+@pytest.mark.parametrize("case", ["nan_depth", "zero_scales", "huge_scales", "tiny_opacity", "no_gaussians"])
+def test_degenerate_readings_and_gaussians_give_a_mask_not_an_error(case):
+    mask, depth, ga, gd, (means, scales, quats, op), member = _occluded_scene()
+    if case == "nan_depth":
+        depth[8:12] = np.nan
+        depth[12:14] = np.inf
+        depth[14:16] = 0.0
+    elif case == "zero_scales":
+        scales = np.zeros_like(scales)
+    elif case == "huge_scales":
+        scales = np.full_like(scales, 1e30)
+    elif case == "tiny_opacity":
+        op = np.full_like(op, 1e-30)
+    else:
+        means, scales, quats, op, member = means[:0], scales[:0], quats[:0], op[:0], member[:0]
+    out = leave_occluded(mask, depth, ga, gd, K_CAM, np.eye(4), (means, scales, quats, op), member, rel_tol=0.03)
+    assert out.shape == mask.shape and out.dtype == bool and not (out & ~mask).any()
+    if case == "nan_depth":
+        np.testing.assert_array_equal(out, mask)        # no reading: nothing to decide
+    if case == "huge_scales":
+        np.testing.assert_array_equal(out[:, 14:], mask[:, 14:])
+    with pytest.raises(ValueError, match="depth image is 5x4 but the mask is 32x24"):
+        leave_occluded(mask, np.ones((4, 5)), ga, gd, K_CAM, np.eye(4), (means, scales, quats, op), member, 0.03)
 
 
 def _coloured(truth: np.ndarray) -> np.ndarray:

@@ -307,6 +307,11 @@ class GroundConfig:
     miou_visible_depth), each pixel on and around the visible mask goes to the map surface its reading
     is nearer, the group's or the rest's, where those lie more than this share of the depth apart (at
     least 1 cm); 0: render only."""
+    visible_front_tol: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.03
+    """With the camera's depth image, a visible-mask pixel whose reading lies more than this share of
+    the depth (at least 1 cm) in front of the group's surface leaves when the map's Gaussians nearest
+    that 3D point are more the rest's than the group's: an occluder the map renders too thin
+    (grounding/masks.py leave_occluded); 0: off."""
     visible_edge_eps: Annotated[float, Interval(ge=0.0)] = 0.01
     """With the camera's colour image, the visible mask's rim then snaps to its colour edges: a guided
     filter of the mask (1 px radius, this regularisation for colours in [0, 1]) thresholded at a half

@@ -4,13 +4,20 @@ rest of the map's (rendered without the group); where the two are too close in d
 (an object's foot on the table) the rendered answer stands. A pixel touching the mask whose reading
 lies in front of the rest's surface and continues the reading of a mask pixel that depth placed on
 the group is the object's own surface that the map has not covered: it joins (docs/pipeline.md,
-"Grounding"). With the camera's colour image the mask's rim then follows the image's colour
+"Grounding"). A mask pixel whose reading lies well in front of the group's surface, at a 3D point
+the rest of the map's Gaussians hold more than the group's, is an occluder the map renders too thin
+(`leave_occluded`). With the camera's colour image the mask's rim then follows the image's colour
 edges (`snap_to_image`)."""
 from __future__ import annotations
 
 import cv2
 import numpy as np
+import torch
 from scipy.ndimage import binary_dilation
+
+from ..geometry.conventions import pixels_to_points
+from ..geometry.points import nearest
+from ..render.projection import quat_to_rotmat
 
 
 def refine_visible(visible: np.ndarray, group_alpha: np.ndarray, group_depth: np.ndarray, rest_alpha: np.ndarray,
@@ -60,6 +67,50 @@ def _continues(mask: np.ndarray, d: np.ndarray, tol: np.ndarray) -> np.ndarray:
         nd = md[dy:dy + H, dx:dx + W]
         hit |= (nd > 0) & (np.abs(d - nd) < tol)
     return hit
+
+
+def leave_occluded(mask: np.ndarray, depth: np.ndarray, group_alpha: np.ndarray, group_depth: np.ndarray,
+                   K: np.ndarray, cam_to_world: np.ndarray, gaussians: tuple, member: np.ndarray, rel_tol: float,
+                   abs_tol: float = 0.01, k: int = 24) -> np.ndarray:
+    """mask [H, W] bool; the camera's depth [H, W] (0, NaN, inf: no reading); the group rendered
+    alone: alpha and expected depth [H, W]; K [3, 3], cam_to_world [4, 4]; gaussians (means [N, 3],
+    scales [N, 3], quats [N, 4], opacities [N]) and member bool [N] (the group). A mask pixel whose
+    reading lies more than max(abs_tol, rel_tol * reading) in front of the group's surface shows
+    something in front of the group. It leaves when, at its back-projected reading, the k nearest
+    Gaussians' densities (opacity x exp(-d^2 / 2) in each one's own axes) sum higher over the rest
+    than over the group: a thin occluder the map renders with little alpha, whose blended depth
+    with what lies behind the group places the rest's surface behind the group's (`refine_visible`
+    then keeps the pixel). Where no Gaussian is near, the pixel stays."""
+    mask = np.asarray(mask, bool)
+    if np.shape(depth) != mask.shape:
+        raise ValueError(f"leave_occluded: depth image is {np.shape(depth)[1]}x{np.shape(depth)[0]} but the mask "
+                         f"is {mask.shape[1]}x{mask.shape[0]}; give the depth registered to the camera the mask is "
+                         "rendered for")
+    means, scales, quats, opacities = (torch.as_tensor(t).detach() for t in gaussians)
+    member = np.asarray(member, bool)
+    with np.errstate(invalid="ignore", over="ignore"):
+        d = np.asarray(depth, np.float64)
+        reading = np.isfinite(d) & (d > 0)
+        ga = np.asarray(group_alpha)
+        g = np.where((ga > 0.05) & np.isfinite(group_depth), np.asarray(group_depth, np.float64), np.inf)
+        front = mask & reading & (d < g - np.maximum(abs_tol, rel_tol * np.where(reading, d, 0.0)))
+    if not front.any() or not len(means):
+        return mask.copy()
+    vs, us = np.nonzero(front)
+    pts = pixels_to_points(us, vs, d[vs, us], np.asarray(K, np.float64), np.asarray(cam_to_world, np.float64))  # [M, 3]
+    _, idx = nearest(means.numpy(), pts, k)                                                  # [M, k]
+    near, inv = np.unique(idx, return_inverse=True)
+    sel = torch.from_numpy(near)
+    R = quat_to_rotmat(quats[sel].double()).numpy()[inv.reshape(idx.shape)]                  # [M, k, 3, 3]
+    s = np.maximum(scales[sel].double().numpy(), 1e-9)[inv.reshape(idx.shape)]              # [M, k, 3]
+    local = np.einsum("mkji,mkj->mki", R, pts[:, None, :] - means[sel].double().numpy()[inv.reshape(idx.shape)]) / s
+    w = np.nan_to_num(opacities[sel].double().numpy()[inv.reshape(idx.shape)]
+                      * np.exp(-0.5 * np.minimum((local ** 2).sum(-1), 1e6)))               # [M, k]
+    mine = member[idx]
+    occluded = (w * ~mine).sum(1) > (w * mine).sum(1)
+    out = mask.copy()
+    out[vs[occluded], us[occluded]] = False
+    return out
 
 
 def snap_to_image(mask: np.ndarray, image: np.ndarray, radius: int = 1, eps: float = 0.01) -> np.ndarray:

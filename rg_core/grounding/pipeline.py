@@ -23,7 +23,7 @@ from . import confidence, phrases, relations, stages
 from .cache import MapCache
 from .carve import mask_depth_offsets, registration_border
 from .grouping import Groups, cluster_instances
-from .masks import refine_visible, snap_to_image
+from .masks import leave_occluded, refine_visible, snap_to_image
 from .relevancy import CANONICAL, relevancy_pca
 from ..perception.query import parse_mode, query_problem
 from .result import GroundingResult
@@ -474,6 +474,11 @@ class Grounder:
             rest = rasterize(*args, member, cam, subset=others)
             out = refine_visible(visible, alone.alpha.numpy(), alone.depth.numpy(), rest.alpha.numpy(),
                                  rest.depth.numpy(), depth, self.gcfg.visible_depth_tol)
+        if depth is not None and self.gcfg.visible_front_tol > 0:
+            mine = np.zeros(N, bool)
+            mine[ids] = True
+            out = leave_occluded(out, depth, alone.alpha.numpy(), alone.depth.numpy(), K, cam_to_world, args, mine,
+                                 self.gcfg.visible_front_tol)
         if image is not None and self.gcfg.visible_edge_eps > 0:
             out = snap_to_image(out, image, eps=self.gcfg.visible_edge_eps)
         return amodal, visible, out
