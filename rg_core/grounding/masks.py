@@ -42,12 +42,7 @@ def refine_visible(visible: np.ndarray, group_alpha: np.ndarray, group_depth: np
         reading = np.isfinite(d) & (d > 0)
         d = np.where(reading, d, 0.0)
 
-        def surface(alpha, sdepth):   # [H, W] metres, inf where the render covers nothing
-            sdepth = np.asarray(sdepth, np.float64)
-            ok = (np.asarray(alpha) > 0.05) & np.isfinite(sdepth) & (sdepth > 0)
-            return np.where(ok, sdepth, np.inf)
-
-        g, r = surface(group_alpha, group_depth), surface(rest_alpha, rest_depth)
+        g, r = _surface(group_alpha, group_depth), _surface(rest_alpha, rest_depth)
         apart = np.isfinite(g) & ~(np.abs(g - r) <= np.maximum(abs_tol, rel_tol * np.where(np.isfinite(g), g, 0.0)))
         nearer_group = np.abs(d - g) < np.abs(d - r)
         tol = np.maximum(abs_tol, rel_tol * d)                                          # [H, W] metres
@@ -56,6 +51,14 @@ def refine_visible(visible: np.ndarray, group_alpha: np.ndarray, group_depth: np
     out = visible & ~(decide & ~nearer_group)
     out |= binary_dilation(visible) & decide & nearer_group & (np.asarray(group_alpha) > rim_alpha)
     return out | (unmapped & _continues(out & decide & nearer_group, d, tol))
+
+
+def _surface(alpha: np.ndarray, sdepth: np.ndarray) -> np.ndarray:
+    """A render's alpha and expected depth [H, W] -> its surface depth [H, W] metres, inf where it
+    covers nothing (alpha <= 0.05) or has no finite positive depth."""
+    with np.errstate(invalid="ignore"):
+        sdepth = np.asarray(sdepth, np.float64)
+        return np.where((np.asarray(alpha) > 0.05) & np.isfinite(sdepth) & (sdepth > 0), sdepth, np.inf)
 
 
 def _continues(mask: np.ndarray, d: np.ndarray, tol: np.ndarray) -> np.ndarray:
@@ -91,20 +94,19 @@ def leave_occluded(mask: np.ndarray, depth: np.ndarray, group_alpha: np.ndarray,
     with np.errstate(invalid="ignore", over="ignore"):
         d = np.asarray(depth, np.float64)
         reading = np.isfinite(d) & (d > 0)
-        ga = np.asarray(group_alpha)
-        g = np.where((ga > 0.05) & np.isfinite(group_depth), np.asarray(group_depth, np.float64), np.inf)
+        g = _surface(group_alpha, group_depth)
         front = mask & reading & (d < g - np.maximum(abs_tol, rel_tol * np.where(reading, d, 0.0)))
     if not front.any() or not len(means):
         return mask.copy()
     vs, us = np.nonzero(front)
     pts = pixels_to_points(us, vs, d[vs, us], np.asarray(K, np.float64), np.asarray(cam_to_world, np.float64))  # [M, 3]
     _, idx = nearest(means.numpy(), pts, k)                                                  # [M, k]
-    near, inv = np.unique(idx, return_inverse=True)
-    sel = torch.from_numpy(near)
-    R = quat_to_rotmat(quats[sel].double()).numpy()[inv.reshape(idx.shape)]                  # [M, k, 3, 3]
-    s = np.maximum(scales[sel].double().numpy(), 1e-9)[inv.reshape(idx.shape)]              # [M, k, 3]
-    local = np.einsum("mkji,mkj->mki", R, pts[:, None, :] - means[sel].double().numpy()[inv.reshape(idx.shape)]) / s
-    w = np.nan_to_num(opacities[sel].double().numpy()[inv.reshape(idx.shape)]
+    near, inv = np.unique(idx, return_inverse=True)        # each neighbour's rotation computed once
+    sel, j = torch.from_numpy(near), inv.reshape(idx.shape)                                  # j [M, k] into near
+    R = quat_to_rotmat(quats[sel].double()).numpy()[j]                                       # [M, k, 3, 3]
+    s = np.maximum(scales[sel].double().numpy(), 1e-9)[j]                                   # [M, k, 3]
+    local = np.einsum("mkji,mkj->mki", R, pts[:, None, :] - means[sel].double().numpy()[j]) / s
+    w = np.nan_to_num(opacities[sel].double().numpy()[j]
                       * np.exp(-0.5 * np.minimum((local ** 2).sum(-1), 1e6)))               # [M, k]
     mine = member[idx]
     occluded = (w * ~mine).sum(1) > (w * mine).sum(1)

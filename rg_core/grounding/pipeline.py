@@ -475,10 +475,8 @@ class Grounder:
             out = refine_visible(visible, alone.alpha.numpy(), alone.depth.numpy(), rest.alpha.numpy(),
                                  rest.depth.numpy(), depth, self.gcfg.visible_depth_tol)
         if depth is not None and self.gcfg.visible_front_tol > 0:
-            mine = np.zeros(N, bool)
-            mine[ids] = True
-            out = leave_occluded(out, depth, alone.alpha.numpy(), alone.depth.numpy(), K, cam_to_world, args, mine,
-                                 self.gcfg.visible_front_tol)
+            out = leave_occluded(out, depth, alone.alpha.numpy(), alone.depth.numpy(), K, cam_to_world, args,
+                                 member[:, 0].numpy() > 0, self.gcfg.visible_front_tol)
         if image is not None and self.gcfg.visible_edge_eps > 0:
             out = snap_to_image(out, image, eps=self.gcfg.visible_edge_eps)
         return amodal, visible, out
