@@ -9,7 +9,8 @@ YCB-Video, with ground-truth 2D inputs (oracle) and with the offline default mod
   trains the field until it converges, then asks every explicit query and the first implicit one
   per object on every test view). Rows: explicit visible mIoU as rendered and following each test
   view's depth and colour (what the node streams), amodal, localization, implicit visible, boxes with
-  IoU >= 0.5, field steps, median query seconds, wall seconds; on the synthetic scenes also the paper's ablation
+  IoU >= 0.5, field steps and what stopped it (converged, or its seconds ceiling on a
+  loaded CPU), median query seconds, wall seconds; on the synthetic scenes also the paper's ablation
   (`rg eval --ablation`: relevancy > 0.5 alone, with the reasoner's target, with grouping).
 Every step runs as its own `rg` process, one after the other. Writes OUT/eval.json (the rows).
 """
@@ -30,7 +31,9 @@ def eval_row(name: str, scene: Path, supervision: str, ablation: bool = False) -
     e = rg("eval", str(scene), "--supervision", supervision, *(("--ablation",) if ablation else ()))
     ev, ex, im = e["eval"], e["eval"]["explicit"], e["eval"]["implicit"]
     boxes = ev["box_iou"]["per_object"]
-    row = {"scene": name, "supervision": supervision, "field_steps": (e.get("field") or {}).get("steps"),
+    field = e.get("field") or {}
+    row = {"scene": name, "supervision": supervision, "field_steps": field.get("steps"),
+           "field_stop": (field.get("stop") or {}).get("stopped"),   # "seconds": the CPU's load cut it short
            "explicit_visible_miou": ex["miou_visible"], "explicit_visible_depth_miou": ex.get("miou_visible_depth"),
            "explicit_amodal_miou": ex.get("miou_amodal"), "localization_pct": ex.get("localization"),
            "implicit_visible_miou": im.get("miou_visible"),

@@ -46,5 +46,17 @@ def test_rg_eval_field_steps_exact(synth_scene_dir, tmp_path):
         assert r.returncode == 0, r.stderr
         field = json.loads(r.stdout)["field"]
         assert field["steps"] == want and field["budget"] == {"steps": want}, field
+    # The seconds ceiling, not the stop test, ends training (min steps out of reach): the report says
+    # so, since such answers depend on the CPU's load; a fixed count carries no warning.
+    cfg.write_text("field:\n  seconds: 0.5\n  converge_min_steps: 100000\n  rays_per_step: 64\n")
+    r = run_rg("--config", str(cfg), "eval", str(synth_scene_dir), "--map", str(m), "--supervision", "oracle",
+               "--implicit", "0", "--json", "--quiet")
+    assert r.returncode == 0, r.stderr
+    field = json.loads(r.stdout)["field"]
+    assert field["stop"]["stopped"] == "seconds" and "0.5 s ceiling" in field["warning"], field
+    assert "--field-steps" in field["warning"] and "0.5 s ceiling" in r.stderr
+    r = run_rg("--config", str(cfg), "eval", str(synth_scene_dir), "--map", str(m), "--supervision", "oracle",
+               "--implicit", "0", "--field-steps", "3", "--json", "--quiet")
+    assert r.returncode == 0 and "warning" not in json.loads(r.stdout)["field"], r.stderr
     r = run_rg("eval", str(synth_scene_dir), "--field-steps", "3", "--field-seconds", "1")
     assert r.returncode == 2 and "not allowed with argument" in r.stderr

@@ -64,6 +64,13 @@ def build_grounder(scene, cfg: RGConfig, supervision: str = "default", field_sec
     field = getattr(mapper, "field", None) or FeatureField(mapper, cfg.field)
     if (field_seconds if field_seconds is not None else cfg.field.steps or cfg.field.seconds) > 0:
         report["field"] = field.train(seconds=field_seconds, progress=progress)
+        stop = report["field"].get("stop") or {}
+        if field_seconds is None and stop.get("stopped") == "seconds":  # the ceiling, not the stop test, ended it
+            report["field"]["warning"] = (
+                f"field: stopped at its {cfg.field.seconds:g} s ceiling (field.seconds) after {stop['steps']} steps, "
+                "before its stop test converged: the answers depend on this CPU's speed and load; "
+                "field.steps (rg eval --field-steps N) trains a fixed count")
+            log.warning(report["field"]["warning"])
     log.info("grounding ready: %d Gaussians, %d keyframes, %d field steps", len(mapper.gaussians),
              len(mapper.keyframes), field.steps)
     names = [o.name for o in scene.objects]
