@@ -233,6 +233,41 @@ def test_a_larger_map_is_culled_around_the_reference_view(grounder, synth_scene,
     assert np.unpackbits(np.frombuffer(keys[0][2], np.uint8))[:4 * N].sum() <= N         # at most copy 0
 
 
+def test_the_peak_lies_where_the_map_renders_what_the_sensor_read(grounder, synth_scene):
+    """A reference-mask pixel where the map renders another surface than the keyframe's reading (a
+    thin rim showing the table behind, a floater in front) would anchor the group there: the peak
+    skips such pixels; with none left, or no readings at all, it takes the whole mask."""
+    from rg_core.grounding import stages
+
+    name = synth_scene.objects[0].name
+    target = grounder._reason(name, "explicit").target
+    ref = stages.reference(grounder, target)
+    kf, mask = ref.keyframe, ref.mask
+    saved = kf.depth.clone()
+    try:
+        kf.depth.fill_(float("nan"))                         # no readings: the rule cannot apply
+        free = stages.peak(grounder, ref, target)
+        kf.depth.copy_(saved)
+        pk = stages.peak(grounder, ref, target)
+        assert mask[pk.py, pk.px]
+        # The sensor reads 0.5 m beyond the render around the peak: the peak moves off that block
+        # onto a pixel whose rendered surface is the reading, and anchors there.
+        ys, xs = slice(max(pk.py - 3, 0), pk.py + 4), slice(max(pk.px - 3, 0), pk.px + 4)
+        assert int(mask.sum()) > int(mask[ys, xs].sum()) + 10
+        z = (pk.render.depth / pk.render.alpha.clamp(min=1e-6)).detach()
+        kf.depth[ys, xs] = z[ys, xs] + 0.5
+        moved = stages.peak(grounder, ref, target)
+        assert mask[moved.py, moved.px] and not (ys.start <= moved.py < ys.stop and xs.start <= moved.px < xs.stop)
+        d = float(kf.depth[moved.py, moved.px])
+        c = grounder.mapper.cfg
+        assert d <= 0 or abs(float(z[moved.py, moved.px]) - d) <= max(c.depth_error_rel * d, c.depth_error_abs)
+        kf.depth.copy_(z + 5.0)                              # every reading disagrees: the whole mask
+        every = stages.peak(grounder, ref, target)
+        assert (every.px, every.py) == (free.px, free.py)
+    finally:
+        kf.depth.copy_(saved)
+
+
 @pytest.mark.parametrize("share, expect_visible", [(0.4, True), (0.5, False)])
 def test_visible_mask_follows_the_share_threshold(share, expect_visible):
     """A half-transparent group Gaussian (opacity 0.45) in front of an opaque wall: at its centre the

@@ -96,13 +96,26 @@ def peak(g, ref: Reference, name: str) -> Peak:
     rel = g._relevancy(fr, name, ref.scale, (slice(y0, y1), slice(x0, x1)))   # [y1-y0, x1-x0]
     smooth = torch.nn.functional.avg_pool2d(rel[None, None], 3, 1, 1, count_include_pad=False)[0, 0]
     if in_mask:
-        smooth = torch.where(ref.mask[y0:y1, x0:x1], smooth, torch.full_like(smooth, -1.0))
+        keep = ref.mask[y0:y1, x0:x1] & _renders_sensed(g, fr, kf, (slice(y0, y1), slice(x0, x1)))
+        if not bool(keep.any()):
+            keep = ref.mask[y0:y1, x0:x1]
+        smooth = torch.where(keep, smooth, torch.full_like(smooth, -1.0))
     py, px = divmod(int(smooth.reshape(-1).argmax()), x1 - x0)
     value = float(rel[py, px])
     py, px = py + y0, px + x0
     z = float(fr.depth[py, px] / fr.alpha[py, px].clamp(min=1e-6))          # the surface there
     anchor = pixels_to_points(px, py, z, np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64))
     return Peak(fr, px, py, value, g.field.instance(fr.latent[py, px], ref.scale), anchor, z > 0)
+
+
+def _renders_sensed(g, fr, kf, box) -> torch.Tensor:
+    """[h', w'] bool over `box`: pixels where the render's surface is the one the keyframe's sensor
+    read (within the mapper's depth tolerance), or that have no reading. Elsewhere the map renders
+    what lies behind or in front of it (a thin rim, a floater), and a peak there anchors on that."""
+    c = g.mapper.cfg
+    d = kf.depth[box]
+    z = fr.depth[box] / fr.alpha[box].clamp(min=1e-6)
+    return ~(d > 0) | ((z - d).abs() <= torch.clamp(d * c.depth_error_rel, min=c.depth_error_abs))
 
 
 def candidate_groups(g, ref: Reference, pk: Peak, max_results: int) -> tuple[Groups, list[tuple[np.ndarray, float]]]:
