@@ -112,10 +112,9 @@ def _renders_sensed(g, fr, kf, box) -> torch.Tensor:
     """[h', w'] bool over `box`: pixels where the render's surface is the one the keyframe's sensor
     read (within the mapper's depth tolerance), or that have no reading. Elsewhere the map renders
     what lies behind or in front of it (a thin rim, a floater), and a peak there anchors on that."""
-    c = g.mapper.cfg
     d = kf.depth[box]
     z = fr.depth[box] / fr.alpha[box].clamp(min=1e-6)
-    return ~(d > 0) | ((z - d).abs() <= torch.clamp(d * c.depth_error_rel, min=c.depth_error_abs))
+    return ~(d > 0) | ((z - d).abs() <= g.mapper.depth_tolerance(d))
 
 
 def candidate_groups(g, ref: Reference, pk: Peak, max_results: int) -> tuple[Groups, list[tuple[np.ndarray, float]]]:

@@ -213,10 +213,15 @@ class Mapper:
         self.totals["pruned"] += res.pruned
         return res
 
+    def depth_tolerance(self, depth: torch.Tensor) -> torch.Tensor:
+        """[h, w] metres: how far a rendered depth may lie from a reading `depth` [h, w] and still
+        explain it, max(depth_error_abs, depth_error_rel x depth)."""
+        return torch.clamp(depth * self.cfg.depth_error_rel, min=self.cfg.depth_error_abs)
+
     def _unexplained(self, out: RenderOutput, depth: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         c = self.cfg
         err = (out.depth - depth).abs()
-        tol = torch.clamp(depth * c.depth_error_rel, min=c.depth_error_abs)
+        tol = self.depth_tolerance(depth)
         # Within one seed footprint of a depth discontinuity the rendered (expected) depth blends
         # both surfaces: the depth test is meaningless there, only coverage (alpha) counts.
         near_edge = local_range(depth, 2 * c.seed_stride + 1, valid) > tol
