@@ -61,6 +61,23 @@ def test_an_unmapped_rim_that_continues_the_object_joins():
     assert not out[8:12, 10].any() and out[12:16, 10].all() and not out[:, 9].any()
 
 
+def test_an_unmapped_rim_two_pixels_wide_joins_and_a_third_pixel_does_not():
+    """The map holds nothing of cols 10-12 (the mapper seeds one Gaussian per 2x2 block, so a rim it
+    missed can be two pixels wide): readings continuing the object join out to `rim_px` pixels from
+    the mask, one pixel with rim_px=1, none with 0."""
+    truth, depth, rendered, (ga, gd, ra, rd) = _square_scene()
+    truth[8:16, 9] = True                               # the object is one column wider on the left
+    depth[truth] = 1.0
+    rendered = truth.copy()
+    rendered[:, 9:13] = False                           # the map renders cols 13-19 ...
+    ga[:, 7:13] = 0.0                                   # ... and holds nothing left of them
+    for rim_px, first in ((2, 11), (1, 12), (0, 13)):
+        out = refine_visible(rendered, ga, gd, ra, rd, depth, rel_tol=0.03, rim_px=rim_px)
+        expect = truth.copy()
+        expect[:, :first] = False
+        np.testing.assert_array_equal(out, expect)
+
+
 def test_surfaces_too_close_to_tell_apart_keep_the_rendered_answer():
     """The object's foot on a table 2 cm behind it: at 3 % of 1-2 m the two cannot be told apart by
     depth; at 1 % (floor 1 cm) they can."""
@@ -195,6 +212,20 @@ def test_a_ragged_rim_snaps_to_the_colour_edge():
     np.testing.assert_array_equal(snap_to_image(ragged, img), truth)
     np.testing.assert_array_equal(snap_to_image(ragged, img.astype(np.float32) / 255), truth)
     np.testing.assert_array_equal(snap_to_image(truth, img), truth)
+
+
+def test_a_thin_object_missing_half_its_width_gets_it_back_from_the_colour():
+    """A red bar two pixels wide (rows 10-11) whose mask holds only row 10 over cols 8-23: the guided
+    filter's 3x3 window sees as much wall as bar around row 11 and leaves it out; each rim pixel then
+    takes the side whose colour within 2 px is nearer, so row 11 joins and no wall pixel does. With
+    a margin no colour difference can reach (2 > sqrt(3)), nothing moves."""
+    truth = np.zeros((H, W), bool)
+    truth[10:12, 6:26] = True
+    mask = truth.copy()
+    mask[11, 8:24] = False
+    img = _coloured(truth)
+    np.testing.assert_array_equal(snap_to_image(mask, img), truth)
+    assert not snap_to_image(mask, img, margin=2.0)[11, 8:24].all()
 
 
 def test_without_a_colour_edge_the_mask_only_smooths():

@@ -314,8 +314,9 @@ class GroundConfig:
     (grounding/masks.py leave_occluded); 0: off."""
     visible_edge_eps: Annotated[float, Interval(ge=0.0)] = 0.01
     """With the camera's colour image, the visible mask's rim then snaps to its colour edges: a guided
-    filter of the mask (1 px radius, this regularisation for colours in [0, 1]) thresholded at a half
-    (grounding/masks.py snap_to_image); 0: off. Measured in docs/pipeline.md, "Grounding"."""
+    filter of the mask (1 px radius, this regularisation for colours in [0, 1]) thresholded at a half,
+    then each rim pixel to the side whose colour within 2 px is nearer (grounding/masks.py
+    snap_to_image); 0: off. Measured in docs/pipeline.md, "Grounding"."""
     outlier_mads: Annotated[float, Interval(ge=0.0)] = 0.0
     """> 0: group Gaussians farther than this many robust spreads (MAD) from the group's median, in
     any axis, are dropped; 0: off. Carving and `link_spacing` already remove strays; at 3 this step

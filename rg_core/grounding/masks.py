@@ -22,7 +22,7 @@ from ..render.projection import quat_to_rotmat
 
 def refine_visible(visible: np.ndarray, group_alpha: np.ndarray, group_depth: np.ndarray, rest_alpha: np.ndarray,
                    rest_depth: np.ndarray, depth: np.ndarray, rel_tol: float, abs_tol: float = 0.01,
-                   rim_alpha: float = 0.1) -> np.ndarray:
+                   rim_alpha: float = 0.1, rim_px: int = 2) -> np.ndarray:
     """visible [H, W] bool; the group rendered alone and the rest of the map rendered without it:
     alpha and expected depth [H, W]; the camera's depth image [H, W] metres (0, NaN, inf: no
     reading). Where the two rendered surfaces lie more than max(abs_tol, rel_tol * the group's depth)
@@ -30,8 +30,9 @@ def refine_visible(visible: np.ndarray, group_alpha: np.ndarray, group_depth: np
     leaves the mask, and a pixel touching the mask whose reading is nearer the group's (covered with
     alpha > rim_alpha) joins it, and so does one whose reading lies in front of the rest's surface
     by more than that tolerance and within it of the reading of a 4-neighbour mask pixel that is
-    nearer the group's surface (a rim the map missed). Pixels without a reading, or where the surfaces
-    cannot be told apart, keep the rendered answer."""
+    nearer the group's surface (a rim the map missed), repeated out to `rim_px` pixels: the mapper
+    seeds one Gaussian per 2x2 block, so a rim it missed can be two pixels wide. Pixels without a
+    reading, or where the surfaces cannot be told apart, keep the rendered answer."""
     visible = np.asarray(visible, bool)
     if np.shape(depth) != visible.shape:
         raise ValueError(f"refine_visible: depth image is {np.shape(depth)[1]}x{np.shape(depth)[0]} but the mask "
@@ -50,7 +51,14 @@ def refine_visible(visible: np.ndarray, group_alpha: np.ndarray, group_depth: np
     decide = reading & apart
     out = visible & ~(decide & ~nearer_group)
     out |= binary_dilation(visible) & decide & nearer_group & (np.asarray(group_alpha) > rim_alpha)
-    return out | (unmapped & _continues(out & decide & nearer_group, d, tol))
+    grown = out & decide & nearer_group
+    for _ in range(max(int(rim_px), 0)):
+        new = unmapped & ~out & _continues(grown, d, tol)
+        if not new.any():
+            break
+        grown |= new
+        out |= new
+    return out
 
 
 def _surface(alpha: np.ndarray, sdepth: np.ndarray) -> np.ndarray:
@@ -115,13 +123,16 @@ def leave_occluded(mask: np.ndarray, depth: np.ndarray, group_alpha: np.ndarray,
     return out
 
 
-def snap_to_image(mask: np.ndarray, image: np.ndarray, radius: int = 1, eps: float = 0.01) -> np.ndarray:
+def snap_to_image(mask: np.ndarray, image: np.ndarray, radius: int = 1, eps: float = 0.01,
+                  margin: float = 0.1) -> np.ndarray:
     """mask [H, W] bool; the camera's colour image [H, W, 3] (uint8, or float in [0, 1]; clipped). The
     mask as 0/1, guided-filtered by the image (He et al. 2010: locally an affine function of the colour
     within `radius` pixels, `eps` the regularisation), thresholded at a half: a pixel whose mask value
     disagrees with most of its like-coloured neighbours flips, so a rim the map renders a pixel off
     here and there (small objects seen from afar) straightens along the colour edge; where the colour
-    is flat the mask only smooths. Non-finite colours count as black."""
+    is flat the mask only smooths. Then each rim pixel goes to the side whose settled colour within
+    2 px is nearer by more than `margin` (`_nearer_side`): the filter averages a 3x3 window and so
+    leaves rims on thin objects. Non-finite colours count as black."""
     mask = np.asarray(mask, bool)
     img = np.asarray(image)
     if img.ndim != 3 or img.shape[2] != 3 or img.shape[:2] != mask.shape:
@@ -134,4 +145,36 @@ def snap_to_image(mask: np.ndarray, image: np.ndarray, radius: int = 1, eps: flo
     else:
         guide = np.clip(np.nan_to_num(img.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0)
     out = cv2.ximgproc.guidedFilter(np.ascontiguousarray(guide), mask.astype(np.float32), int(radius), float(eps))
-    return out > 0.5
+    return _nearer_side(out > 0.5, guide, margin)
+
+
+def _nearer_side(mask: np.ndarray, guide: np.ndarray, margin: float, r: int = 2) -> np.ndarray:
+    """mask [H, W] bool, guide [H, W, 3] float in [0, 1]. A mask pixel touching the outside (or an
+    outside pixel touching the mask; 4-neighbours) compares its colour with the nearest-coloured
+    settled pixel of each side within r px: the mask's interior (the mask itself where it is too thin
+    to have one within r) and the outside not touching the mask. It goes to the side nearer by more than
+    `margin` (Euclidean, RGB in [0, 1]); otherwise it stays."""
+    if not mask.any():
+        return mask
+    ys, xs = np.nonzero(binary_dilation(mask))
+    y0, y1, x0, x1 = max(ys.min() - r, 0), ys.max() + r + 1, max(xs.min() - r, 0), xs.max() + r + 1
+    m, img = mask[y0:y1, x0:x1], guide[y0:y1, x0:x1]                               # the mask's box
+    grown = binary_dilation(m)
+    inner = m & ~binary_dilation(~m, border_value=0)
+    rys, rxs = np.nonzero(grown & ~inner)                                           # the rim [R]
+    pimg = np.pad(img, ((r, r), (r, r), (0, 0)), mode="edge")
+    settled = [np.pad(s, r) for s in (inner, m, ~grown)]                            # in, mask, out
+    near = np.full((3, len(rys)), np.inf, np.float32)                               # [3, R]
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            if dy or dx:
+                ny, nx = rys + r + dy, rxs + r + dx
+                dist = np.sqrt(((pimg[ny, nx] - img[rys, rxs]) ** 2).sum(-1))           # [R]
+                for k, s in enumerate(settled):
+                    np.minimum(near[k], np.where(s[ny, nx], dist, np.inf), out=near[k])
+    d_in = np.where(np.isfinite(near[0]), near[0], near[1])             # no interior within r: thin
+    inside = m[rys, rxs]
+    keep = np.where(inside, ~(near[2] + margin < d_in), d_in + margin < near[2])
+    out = mask.copy()
+    out[y0 + rys, x0 + rxs] = keep
+    return out
