@@ -94,6 +94,50 @@ def test_a_name_two_objects_share_is_asked_once_and_scored_against_the_one_found
     assert ev["explicit"]["miou_visible"] == alone["explicit"]["miou_visible"] >= 30
 
 
+def test_masks_of_a_second_instance_do_not_vote(grounder, synth_scene):
+    """Two objects of one name (b's masks carry a's name): a keyframe's best mask of the name may
+    show the other one, which sees this one's Gaussians outside it and would carve them away. Only
+    masks that overlap the reference mask in 3D vote (`ground.instance_overlap`); 0 lets each
+    keyframe's best mask vote, whichever instance it shows."""
+    from rg_core.grounding import stages
+
+    a, b = synth_scene.objects[:2]
+    sup = grounder.mapper.supervision.by_keyframe
+    unit = lambda t: torch.nn.functional.normalize(t.float(), dim=-1)
+    e_a, e_b = unit(grounder.encode([a.name, b.name]))
+    rows = {o.id: {k: np.flatnonzero((unit(s.embeddings) @ e).numpy() > 0.999) for k, s in sup.items()}
+            for o, e in ((a, e_a), (b, e_b))}
+    a_row = next(s.embeddings[rows[a.id][k][0]].clone() for k, s in sup.items() if len(rows[a.id][k]))
+    saved = {k: s.embeddings.clone() for k, s in sup.items()}
+    shown_by = lambda oid: {sup[k].masks[i].tobytes() for k, ii in rows[oid].items() for i in ii}
+    views, before = {}, grounder.gcfg.instance_overlap
+    try:
+        for k, s in sup.items():
+            s.embeddings[rows[b.id][k]] = a_row
+        ref = stages.reference(grounder, a.name)
+        mine = next(o.id for o in (a, b) if ref.mask.numpy().tobytes() in shown_by(o.id))
+        other = b.id if mine == a.id else a.id
+        # The reference's own masks a little less like the name: where both show, the other is best.
+        u = unit(a_row)
+        w = unit(e_b - (e_b @ u) * u)                                  # a unit vector orthogonal to u
+        for k, s in sup.items():
+            s.embeddings[rows[mine][k]] = (0.99 * u + 0.141 * w).to(s.embeddings.dtype)   # cosine 0.99
+        ref.candidates = stages.mask_candidates(grounder, ref.target)
+        assert ref.similarity - 0.02 <= min(float(unit(s.embeddings[i]) @ ref.target)
+                                           for k, s in sup.items() for i in rows[mine][k]) < ref.similarity
+        for overlap in (0.5, 0.0):
+            grounder.gcfg.instance_overlap = overlap
+            views[overlap] = [v.mask.tobytes() for v in stages.carve_views(grounder, ref)]
+    finally:
+        grounder.gcfg.instance_overlap = before
+        for k, s in sup.items():
+            s.embeddings = saved[k]
+    seen = sum(len(ii) > 0 for ii in rows[mine].values())
+    assert len(views[0.5]) >= min(seen, grounder.gcfg.carve_views) // 2
+    assert all(m in shown_by(mine) for m in views[0.5])
+    assert sum(m in shown_by(other) for m in views[0.0]) >= 2
+
+
 def test_amodal_mask_covers_the_visible_mask(grounder, synth_scene):
     o = synth_scene.objects[0]
     r = grounder.ground(o.name, mode="explicit")

@@ -328,6 +328,11 @@ class GroundConfig:
     min_mask_votes: int = 2
     """... and gains the Gaussians that at least this many of those keyframes see inside it (and no
     more of them outside); joined in space to the rest like any member."""
+    instance_overlap: Annotated[float, Interval(ge=0.0, le=1.0)] = 0.5
+    """Those keyframes' masks vote only when at least this share of a mask's 3D points lies within
+    max(2 cm, s*/2) of the reference mask's: the same instance (a keyframe gives the most similar of
+    its masks that is). Two lego bricks 4 m apart: the other's masks carved this one away to one
+    Gaussian. 0: each keyframe's best mask votes, whichever instance it shows."""
     vote_border_px: int = -1
     """Pixels each mask grows by for the votes and carving; -1 = the colour/depth registration offset
     measured on the map's keyframes (rg_core/grounding/carve.py registration_border)."""

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from ..geometry.conventions import pixels_to_points
+from ..geometry.points import nearest
 from .boxes import connected_to, group_boxes, robust_inliers
 from .carve import MaskView, mask_votes
 from .grouping import Groups
@@ -172,23 +173,58 @@ def more_instances(g, groups: Groups, order: list[int], target, canon, scale, k:
     return chosen
 
 
-def carve_views(g, cands: list[MaskCandidate]) -> list[MaskView]:
-    """The target's masks in up to `carve_views` keyframes: those whose best mask is about as
-    similar to the target as the best one (the same object seen again), largest first."""
-    n = g.gcfg.carve_views
+def mask_points(kf, mask: np.ndarray) -> np.ndarray:
+    """[P, 3] world points of a keyframe's mask [h, w] (its size) at the pixels with a depth reading."""
+    d = kf.depth.numpy()
+    vs, us = np.nonzero(np.asarray(mask, bool) & (d > 0))
+    return pixels_to_points(us, vs, d[vs, us], np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64))
+
+
+def carve_views(g, ref: Reference, anchor: np.ndarray | None = None) -> list[MaskView]:
+    """The target's masks in up to `carve_views` keyframes, largest first: those whose best mask is
+    about as similar to the target as the best one (the same object seen again). With
+    `ground.instance_overlap` > 0 a mask counts only when that share of its 3D points lies within
+    max(2 cm, s*/2) of `anchor` [P, 3] (default: the reference mask's points): the same instance. A
+    keyframe then gives the most similar of its masks that is; a second lego brick across the room
+    is not this one, and its masks would carve this one away."""
+    n, share = g.gcfg.carve_views, g.gcfg.instance_overlap
+    cands = ref.candidates
     if n <= 0 or not cands:
         return []
-    top = max(c.similarity for c in cands)
-    near = sorted((c for c in cands if c.similarity >= max(top - 0.02, g.gcfg.min_mask_similarity)),
-                  key=lambda c: -c.pixels)
-    out = []
-    for c in near[:n]:
-        kf = c.keyframe
-        mask = g.mapper.supervision.by_keyframe[kf.index].masks[c.index]
-        if mask.shape == tuple(kf.depth.shape):
-            out.append(MaskView(np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64),
-                                kf.depth.numpy(), mask))
-    return out
+    floor = max(max(c.similarity for c in cands) - 0.02, g.gcfg.min_mask_similarity)
+    if anchor is None:
+        on_ref = ref.mask.shape == tuple(ref.keyframe.depth.shape)
+        anchor = mask_points(ref.keyframe, ref.mask.numpy()) if on_ref and share > 0 else np.zeros((0, 3))
+    check = share > 0 and len(anchor) > 0
+    tol = max(0.02, 0.5 * ref.scale)
+    sup = g.mapper.supervision.by_keyframe
+    picked = []                                                         # (pixels, keyframe, mask)
+    for c in cands:
+        if c.similarity < floor:
+            continue
+        kf, s = c.keyframe, sup[c.keyframe.index]
+        if not check:
+            options = [(c.similarity, c.index)]
+        else:
+            sims = (torch.nn.functional.normalize(s.embeddings.float(), dim=-1) @ ref.target).numpy()
+            options = [(float(sims[i]), int(i)) for i in np.flatnonzero(sims >= floor)]
+        best = None                                                     # (similarity, overlap, index)
+        for sim, i in options:
+            if s.masks[i].shape != tuple(kf.depth.shape):
+                continue
+            f = 1.0
+            if check:
+                p = mask_points(kf, s.masks[i])
+                f = float(np.mean(nearest(anchor, p, 1)[0][:, 0] <= tol)) if len(p) else 0.0
+                if f < share:
+                    continue
+            if best is None or (sim, f) > best[:2]:
+                best = (sim, f, i)
+        if best is not None:
+            picked.append((int(s.masks[best[2]].sum()), kf, s.masks[best[2]]))
+    picked.sort(key=lambda x: -x[0])
+    return [MaskView(np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64), kf.depth.numpy(), mask)
+            for _, kf, mask in picked[:n]]
 
 
 def objects(g, ref: Reference, pk: Peak, found: list[tuple[np.ndarray, float]], max_results: int,
@@ -200,27 +236,25 @@ def objects(g, ref: Reference, pk: Peak, found: list[tuple[np.ndarray, float]], 
     means, colors = gs.means.detach().numpy(), (gs.colors.detach().clamp(0, 1) * 255).round().byte().numpy()
     kf = ref.keyframe
     link = g.gcfg.link_spacing * g.spacing()
-    views = carve_views(g, ref.candidates)
+    views = carve_views(g, ref)
     ref_view = None
     if g.gcfg.anchor_support and ref.mask.shape == tuple(kf.depth.shape):
         ref_view = MaskView(np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64),
                             kf.depth.numpy(), ref.mask.numpy())
-    carved = voted = None
     border = g.vote_border() if views or ref_view is not None else 0
-    if views:   # votes only where they can matter: the groups and what lies within 4 s* of the peak
-        near = (np.nonzero(np.linalg.norm(means - pk.anchor, axis=1) <= 4 * ref.scale)[0] if pk.has_depth
-                else np.zeros(0, np.int64))
-        cand = np.unique(np.concatenate([ids for ids, _ in found[:max_results]] + [near]).astype(np.int64))
-        v = mask_votes(means[cand], views, gs.scales.detach()[torch.from_numpy(cand)].max(1).values.numpy(),
-                       border_px=border)
-        carved, voted = np.zeros(len(means), bool), np.zeros(len(means), bool)
-        carved[cand], voted[cand] = v.carved(g.gcfg.min_mask_votes), v.voted(g.gcfg.min_mask_votes)
+    sizes = gs.scales.detach().max(1).values.numpy()                                       # [N]
     out = []
     for n, (ids, s_g) in enumerate(found[:max_results]):
-        if carved is not None:
-            ids = ids[~carved[ids]]
+        # Another instance ("the cups") is voted on by the masks of that instance: those near its members.
+        seen_by = views if n == 0 else carve_views(g, ref, means[ids])
+        if seen_by:   # votes only where they can matter: the set and, for the first, within 4 s* of the peak
+            near = (np.nonzero(np.linalg.norm(means - pk.anchor, axis=1) <= 4 * ref.scale)[0]
+                    if n == 0 and pk.has_depth else np.zeros(0, np.int64))
+            cand = np.unique(np.concatenate([ids, near]).astype(np.int64))
+            v = mask_votes(means[cand], seen_by, sizes[cand], border_px=border)
+            ids = np.setdiff1d(ids, cand[v.carved(g.gcfg.min_mask_votes)])
             if n == 0:
-                ids = np.union1d(ids, np.nonzero(voted)[0])
+                ids = np.union1d(ids, cand[v.voted(g.gcfg.min_mask_votes)])
         if link > 0 and len(ids) > 1:
             support = against = None
             if n == 0 and ref_view is not None:
