@@ -173,6 +173,15 @@ def more_instances(g, groups: Groups, order: list[int], target, canon, scale, k:
     return chosen
 
 
+def keyframe_view(kf, mask: np.ndarray) -> MaskView | None:
+    """A keyframe's mask [h, w] as a voting view (its camera and depth); None when the mask is not
+    at the keyframe's size."""
+    if np.shape(mask) != tuple(kf.depth.shape):
+        return None
+    return MaskView(np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64), kf.depth.numpy(),
+                    np.asarray(mask))
+
+
 def mask_points(kf, mask: np.ndarray) -> np.ndarray:
     """[P, 3] world points of a keyframe's mask [h, w] (its size) at the pixels with a depth reading."""
     d = kf.depth.numpy()
@@ -223,8 +232,7 @@ def carve_views(g, ref: Reference, anchor: np.ndarray | None = None) -> list[Mas
         if best is not None:
             picked.append((int(s.masks[best[2]].sum()), kf, s.masks[best[2]]))
     picked.sort(key=lambda x: -x[0])
-    return [MaskView(np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64), kf.depth.numpy(), mask)
-            for _, kf, mask in picked[:n]]
+    return [keyframe_view(kf, mask) for _, kf, mask in picked[:n]]
 
 
 def objects(g, ref: Reference, pk: Peak, found: list[tuple[np.ndarray, float]], max_results: int,
@@ -237,10 +245,7 @@ def objects(g, ref: Reference, pk: Peak, found: list[tuple[np.ndarray, float]], 
     kf = ref.keyframe
     link = g.gcfg.link_spacing * g.spacing()
     views = carve_views(g, ref)
-    ref_view = None
-    if g.gcfg.anchor_support and ref.mask.shape == tuple(kf.depth.shape):
-        ref_view = MaskView(np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64),
-                            kf.depth.numpy(), ref.mask.numpy())
+    ref_view = keyframe_view(kf, ref.mask.numpy()) if g.gcfg.anchor_support else None
     border = g.vote_border() if views or ref_view is not None else 0
     sizes = gs.scales.detach().max(1).values.numpy()                                       # [N]
     out = []
