@@ -4,7 +4,7 @@ rid of occluders the map renders too thin (leave_occluded) and snapped to its co
 import numpy as np
 import pytest
 
-from rg_core.grounding.masks import leave_occluded, refine_visible, snap_to_image
+from rg_core.grounding.masks import leave_occluded, refine_visible, snap_to_image, surfaces_apart
 
 H, W = 24, 32
 
@@ -167,6 +167,53 @@ def test_readings_in_front_that_the_group_holds_or_nothing_holds_stay():
     np.testing.assert_array_equal(out, mask2)           # 1.5 cm in front: within max(1 cm, 3 %)
 
 
+def _smeared_scene():
+    """The group: a plate of Gaussians at 1.0 m on rows 8-15, cols 10-19, before a wall of the rest's
+    Gaussians at 2.0 m over the whole image. The mask (as rendered) smears two columns past the
+    plate's right edge (cols 20-21), where the sensor sees the wall behind it."""
+    gp, gs = _splats((8, 16), (10, 20), 1.0, 0.03)
+    wp, ws = _splats((0, H), (0, W), 2.0, 0.03)
+    means, scales = np.r_[gp, wp], np.r_[gs, ws]
+    quats = np.tile([1.0, 0.0, 0.0, 0.0], (len(means), 1))
+    member = np.r_[np.ones(len(gp), bool), np.zeros(len(wp), bool)]
+    mask = np.zeros((H, W), bool)
+    mask[8:16, 10:22] = True
+    depth = np.full((H, W), 2.0)
+    depth[8:16, 10:20] = 1.0
+    ga = np.where(mask, 0.9, 0.0)
+    ga[:, 20:22] *= 0.4
+    gd = np.where(mask, 1.0, 0.0)
+    return mask, depth, ga, gd, (means, scales, quats, np.full(len(means), 0.9)), member
+
+
+def test_a_rim_smeared_over_the_wall_behind_leaves_the_mask():
+    """The smear's readings lie behind the group's surface, so only the rim rule can see them: the
+    wall's Gaussians hold those 3D points, the plate's own rim (its Gaussians hold it) stays."""
+    mask, depth, ga, gd, gs, member = _smeared_scene()
+    expect = mask.copy()
+    expect[:, 20:22] = False
+    out = leave_occluded(mask, depth, ga, gd, K_CAM, np.eye(4), gs, member, rel_tol=0.03, rim_ratio=4.0)
+    np.testing.assert_array_equal(out, expect)
+    old = leave_occluded(mask, depth, ga, gd, K_CAM, np.eye(4), gs, member, rel_tol=0.03)
+    np.testing.assert_array_equal(old, mask)                    # rim_ratio 0: the smear stays
+    where = np.ones((H, W), bool)
+    where[:, 21] = False                                        # e.g. surfaces too close to tell apart
+    out = leave_occluded(mask, depth, ga, gd, K_CAM, np.eye(4), gs, member, rel_tol=0.03, rim_ratio=4.0,
+                         rim_where=where)
+    expect[:, 21] = mask[:, 21]
+    np.testing.assert_array_equal(out, expect)
+
+
+def test_surfaces_apart_tells_a_flat_object_from_a_cup_before_a_wall():
+    """A flat object 5 mm over the table cannot be told apart at 1 m; a cup 1 m before a wall can,
+    and so can a group with nothing of the rest behind it; no group there: nothing to tell."""
+    ga = np.array([[0.9, 0.9, 0.9, 0.0]])
+    gd = np.array([[1.0, 1.0, 1.0, 0.0]])
+    ra = np.array([[0.9, 0.9, 0.0, 0.9]])
+    rd = np.array([[1.005, 2.0, 0.0, 2.0]])
+    np.testing.assert_array_equal(surfaces_apart(ga, gd, ra, rd, rel_tol=0.015), [[False, True, True, False]])
+
+
 @pytest.mark.parametrize("case", ["nan_depth", "zero_scales", "huge_scales", "tiny_opacity", "no_gaussians"])
 def test_degenerate_readings_and_gaussians_give_a_mask_not_an_error(case):
     mask, depth, ga, gd, (means, scales, quats, op), member = _occluded_scene()
@@ -188,6 +235,11 @@ def test_degenerate_readings_and_gaussians_give_a_mask_not_an_error(case):
         np.testing.assert_array_equal(out, mask)        # no reading: nothing to decide
     if case == "huge_scales":
         np.testing.assert_array_equal(out[:, 14:], mask[:, 14:])
+    rim = leave_occluded(mask, depth, ga, gd, K_CAM, np.eye(4), (means, scales, quats, op), member, rel_tol=0.03,
+                         rim_ratio=4.0)
+    assert rim.shape == mask.shape and rim.dtype == bool and not (rim & ~mask).any()
+    if case == "nan_depth":
+        np.testing.assert_array_equal(rim, mask)
     with pytest.raises(ValueError, match="depth image is 5x4 but the mask is 32x24"):
         leave_occluded(mask, np.ones((4, 5)), ga, gd, K_CAM, np.eye(4), (means, scales, quats, op), member, 0.03)
 

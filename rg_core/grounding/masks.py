@@ -13,7 +13,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import torch
-from scipy.ndimage import binary_dilation
+from scipy.ndimage import binary_dilation, binary_erosion
 
 from ..geometry.conventions import pixels_to_points
 from ..geometry.points import nearest
@@ -44,7 +44,7 @@ def refine_visible(visible: np.ndarray, group_alpha: np.ndarray, group_depth: np
         d = np.where(reading, d, 0.0)
 
         g, r = _surface(group_alpha, group_depth), _surface(rest_alpha, rest_depth)
-        apart = np.isfinite(g) & ~(np.abs(g - r) <= np.maximum(abs_tol, rel_tol * np.where(np.isfinite(g), g, 0.0)))
+        apart = surfaces_apart(group_alpha, group_depth, rest_alpha, rest_depth, rel_tol, abs_tol)
         nearer_group = np.abs(d - g) < np.abs(d - r)
         tol = np.maximum(abs_tol, rel_tol * d)                                          # [H, W] metres
         unmapped = reading & (d < r - tol)          # in front of all the rest renders there (r: inf = none)
@@ -59,6 +59,16 @@ def refine_visible(visible: np.ndarray, group_alpha: np.ndarray, group_depth: np
         grown |= new
         out |= new
     return out
+
+
+def surfaces_apart(group_alpha: np.ndarray, group_depth: np.ndarray, rest_alpha: np.ndarray,
+                   rest_depth: np.ndarray, rel_tol: float, abs_tol: float = 0.01) -> np.ndarray:
+    """The group rendered alone and the rest of the map rendered without it: alpha and expected depth
+    [H, W]. [H, W] bool: where the group's surface lies more than max(abs_tol, rel_tol * its depth)
+    from the rest's (or the rest covers nothing there), so that a depth reading can tell them apart."""
+    g, r = _surface(group_alpha, group_depth), _surface(rest_alpha, rest_depth)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(g) & ~(np.abs(g - r) <= np.maximum(abs_tol, rel_tol * np.where(np.isfinite(g), g, 0.0)))
 
 
 def _surface(alpha: np.ndarray, sdepth: np.ndarray) -> np.ndarray:
@@ -82,7 +92,8 @@ def _continues(mask: np.ndarray, d: np.ndarray, tol: np.ndarray) -> np.ndarray:
 
 def leave_occluded(mask: np.ndarray, depth: np.ndarray, group_alpha: np.ndarray, group_depth: np.ndarray,
                    K: np.ndarray, cam_to_world: np.ndarray, gaussians: tuple, member: np.ndarray, rel_tol: float,
-                   abs_tol: float = 0.01, k: int = 24) -> np.ndarray:
+                   abs_tol: float = 0.01, k: int = 24, rim_ratio: float = 0.0, rim_px: int = 2,
+                   rim_where: np.ndarray | None = None) -> np.ndarray:
     """mask [H, W] bool; the camera's depth [H, W] (0, NaN, inf: no reading); the group rendered
     alone: alpha and expected depth [H, W]; K [3, 3], cam_to_world [4, 4]; gaussians (means [N, 3],
     scales [N, 3], quats [N, 4], opacities [N]) and member bool [N] (the group). A mask pixel whose
@@ -91,7 +102,12 @@ def leave_occluded(mask: np.ndarray, depth: np.ndarray, group_alpha: np.ndarray,
     Gaussians' densities (opacity x exp(-d^2 / 2) in each one's own axes) sum higher over the rest
     than over the group: a thin occluder the map renders with little alpha, whose blended depth
     with what lies behind the group places the rest's surface behind the group's (`refine_visible`
-    then keeps the pixel). Where no Gaussian is near, the pixel stays."""
+    then keeps the pixel). With rim_ratio > 0 a mask pixel within rim_px of the mask's edge also
+    leaves, whatever its depth, where the rest's densities sum more than rim_ratio times the
+    group's: a rim the renders smear over a neighbour that the camera's reading places on it; only
+    where `rim_where` [H, W] bool (None: everywhere) holds, e.g. `surfaces_apart`, since a flat
+    object's own surface lies within millimetres of the table's Gaussians. Where no Gaussian is
+    near, the pixel stays."""
     mask = np.asarray(mask, bool)
     if np.shape(depth) != mask.shape:
         raise ValueError(f"leave_occluded: depth image is {np.shape(depth)[1]}x{np.shape(depth)[0]} but the mask "
@@ -104,9 +120,16 @@ def leave_occluded(mask: np.ndarray, depth: np.ndarray, group_alpha: np.ndarray,
         reading = np.isfinite(d) & (d > 0)
         g = _surface(group_alpha, group_depth)
         front = mask & reading & (d < g - np.maximum(abs_tol, rel_tol * np.where(reading, d, 0.0)))
-    if not front.any() or not len(means):
+    ratio = np.ones(mask.shape)                                                # [H, W] rest : group to leave
+    if rim_ratio > 0 and rim_px > 0:
+        rim = mask & reading & ~front & ~binary_erosion(mask, iterations=int(rim_px), border_value=1)
+        if rim_where is not None:
+            rim &= np.asarray(rim_where, bool)
+        ratio[rim] = rim_ratio
+    ask = front | rim if rim_ratio > 0 and rim_px > 0 else front
+    if not ask.any() or not len(means):
         return mask.copy()
-    vs, us = np.nonzero(front)
+    vs, us = np.nonzero(ask)
     pts = pixels_to_points(us, vs, d[vs, us], np.asarray(K, np.float64), np.asarray(cam_to_world, np.float64))  # [M, 3]
     _, idx = nearest(means.numpy(), pts, k)                                                  # [M, k]
     near, inv = np.unique(idx, return_inverse=True)        # each neighbour's rotation computed once
@@ -117,7 +140,7 @@ def leave_occluded(mask: np.ndarray, depth: np.ndarray, group_alpha: np.ndarray,
     w = np.nan_to_num(opacities[sel].double().numpy()[j]
                       * np.exp(-0.5 * np.minimum((local ** 2).sum(-1), 1e6)))               # [M, k]
     mine = member[idx]
-    occluded = (w * ~mine).sum(1) > (w * mine).sum(1)
+    occluded = (w * ~mine).sum(1) > ratio[vs, us] * (w * mine).sum(1)
     out = mask.copy()
     out[vs[occluded], us[occluded]] = False
     return out

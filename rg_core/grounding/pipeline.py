@@ -23,7 +23,7 @@ from . import confidence, phrases, relations, stages
 from .cache import MapCache
 from .carve import mask_depth_offsets, registration_border
 from .grouping import Groups, cluster_instances
-from .masks import leave_occluded, refine_visible, snap_to_image
+from .masks import leave_occluded, refine_visible, snap_to_image, surfaces_apart
 from .relevancy import CANONICAL, relevancy_pca
 from ..perception.query import parse_mode, query_problem
 from .result import GroundingResult
@@ -468,15 +468,19 @@ class Grounder:
         if not sensed:
             return amodal, visible, None
         out = visible.copy()
+        apart = None
         if depth is not None and self.gcfg.visible_depth_tol > 0:
             others = torch.ones(N, dtype=torch.bool)
             others[torch.from_numpy(ids)] = False
             rest = rasterize(*args, member, cam, subset=others)
             out = refine_visible(visible, alone.alpha.numpy(), alone.depth.numpy(), rest.alpha.numpy(),
                                  rest.depth.numpy(), depth, self.gcfg.visible_depth_tol)
-        if depth is not None and self.gcfg.visible_front_tol > 0:
+            apart = surfaces_apart(alone.alpha.numpy(), alone.depth.numpy(), rest.alpha.numpy(), rest.depth.numpy(),
+                                   self.gcfg.visible_depth_tol)
+        if depth is not None and (self.gcfg.visible_front_tol > 0 or self.gcfg.visible_rim_ratio > 0):
             out = leave_occluded(out, depth, alone.alpha.numpy(), alone.depth.numpy(), K, cam_to_world, args,
-                                 member[:, 0].numpy() > 0, self.gcfg.visible_front_tol)
+                                 member[:, 0].numpy() > 0, self.gcfg.visible_front_tol or np.inf,
+                                 rim_ratio=self.gcfg.visible_rim_ratio, rim_where=apart)
         if image is not None and self.gcfg.visible_edge_eps > 0:
             out = snap_to_image(out, image, eps=self.gcfg.visible_edge_eps)
         return amodal, visible, out
