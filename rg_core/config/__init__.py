@@ -317,7 +317,7 @@ class GroundConfig:
     group's and the rest's surfaces lie apart (`visible_depth_tol`), leaves whatever its depth when
     the Gaussians nearest its reading's 3D point hold it more than this many times as much for the
     rest of the map as for the group: the render smears a small object's rim over what lies behind
-    it (grounding/masks.py leave_occluded); 0: off."""
+    it (grounding/masks.py leave_occluded); 0: off, and so with visible_depth_tol 0."""
     visible_edge_eps: Annotated[float, Interval(ge=0.0)] = 0.01
     """With the camera's colour image, the visible mask's rim then snaps to its colour edges: a guided
     filter of the mask (1 px radius, this regularisation for colours in [0, 1]) thresholded at a half,

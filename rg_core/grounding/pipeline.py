@@ -477,10 +477,11 @@ class Grounder:
                                  rest.depth.numpy(), depth, self.gcfg.visible_depth_tol)
             apart = surfaces_apart(alone.alpha.numpy(), alone.depth.numpy(), rest.alpha.numpy(), rest.depth.numpy(),
                                    self.gcfg.visible_depth_tol)
-        if depth is not None and (self.gcfg.visible_front_tol > 0 or self.gcfg.visible_rim_ratio > 0):
+        if depth is not None and (self.gcfg.visible_front_tol > 0 or apart is not None):
             out = leave_occluded(out, depth, alone.alpha.numpy(), alone.depth.numpy(), K, cam_to_world, args,
                                  member[:, 0].numpy() > 0, self.gcfg.visible_front_tol or np.inf,
-                                 rim_ratio=self.gcfg.visible_rim_ratio, rim_where=apart)
+                                 rim_ratio=self.gcfg.visible_rim_ratio if apart is not None else 0.0,
+                                 rim_where=apart)
         if image is not None and self.gcfg.visible_edge_eps > 0:
             out = snap_to_image(out, image, eps=self.gcfg.visible_edge_eps)
         return amodal, visible, out
