@@ -120,16 +120,14 @@ def leave_occluded(mask: np.ndarray, depth: np.ndarray, group_alpha: np.ndarray,
         reading = np.isfinite(d) & (d > 0)
         g = _surface(group_alpha, group_depth)
         front = mask & reading & (d < g - np.maximum(abs_tol, rel_tol * np.where(reading, d, 0.0)))
-    ratio = np.ones(mask.shape)                                                # [H, W] rest : group to leave
+    rim = np.zeros_like(mask)                               # [H, W] asked at rim_ratio instead of 1
     if rim_ratio > 0 and rim_px > 0:
         rim = mask & reading & ~front & ~binary_erosion(mask, iterations=int(rim_px), border_value=1)
         if rim_where is not None:
             rim &= np.asarray(rim_where, bool)
-        ratio[rim] = rim_ratio
-    ask = front | rim if rim_ratio > 0 and rim_px > 0 else front
-    if not ask.any() or not len(means):
+    if not (front | rim).any() or not len(means):
         return mask.copy()
-    vs, us = np.nonzero(ask)
+    vs, us = np.nonzero(front | rim)
     pts = pixels_to_points(us, vs, d[vs, us], np.asarray(K, np.float64), np.asarray(cam_to_world, np.float64))  # [M, 3]
     _, idx = nearest(means.numpy(), pts, k)                                                  # [M, k]
     near, inv = np.unique(idx, return_inverse=True)        # each neighbour's rotation computed once
@@ -140,7 +138,7 @@ def leave_occluded(mask: np.ndarray, depth: np.ndarray, group_alpha: np.ndarray,
     w = np.nan_to_num(opacities[sel].double().numpy()[j]
                       * np.exp(-0.5 * np.minimum((local ** 2).sum(-1), 1e6)))               # [M, k]
     mine = member[idx]
-    occluded = (w * ~mine).sum(1) > ratio[vs, us] * (w * mine).sum(1)
+    occluded = (w * ~mine).sum(1) > np.where(rim[vs, us], rim_ratio, 1.0) * (w * mine).sum(1)
     out = mask.copy()
     out[vs[occluded], us[occluded]] = False
     return out
