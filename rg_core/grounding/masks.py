@@ -125,9 +125,10 @@ def leave_occluded(mask: np.ndarray, depth: np.ndarray, group_alpha: np.ndarray,
         rim = mask & reading & ~front & ~binary_erosion(mask, iterations=int(rim_px), border_value=1)
         if rim_where is not None:
             rim &= np.asarray(rim_where, bool)
-    if not (front | rim).any() or not len(means):
+    ask = front | rim
+    if not ask.any() or not len(means):
         return mask.copy()
-    vs, us = np.nonzero(front | rim)
+    vs, us = np.nonzero(ask)
     pts = pixels_to_points(us, vs, d[vs, us], np.asarray(K, np.float64), np.asarray(cam_to_world, np.float64))  # [M, 3]
     _, idx = nearest(means.numpy(), pts, k)                                                  # [M, k]
     near, inv = np.unique(idx, return_inverse=True)        # each neighbour's rotation computed once
