@@ -72,7 +72,9 @@ def test_second_pass_barely_grows_the_map(synth_scene):
     n2 = len(mapper.gaussians)
     assert n2 < 1.05 * n1, (n1, n2)
     assert sum(r.keyframe for r in results) <= max(1, k1 // 3)
-    assert all("already mapped" in r.reason for r in results if not r.keyframe)
+    # Not keyframes: already mapped, or a revisit of an unchanged keyframe's view (its few
+    # unexplained pixels seeded; splitting leaves small gaps until the next optimisation).
+    assert all("already mapped" in r.reason or r.revisit is not None for r in results if not r.keyframe)
 
 
 def test_revisited_view_replaces_its_keyframe(synth_scene):
@@ -302,24 +304,30 @@ def test_bad_map_files(tmp_path):
         load_map(tmp_path / "new.rgmap")
 
 
+def _one_keyframe(synth_scene):
+    """A 160 px map of the first view, densification off: (mapper, its PreparedFrame, keyframe,
+    pixels: means [N, 3] -> u, v, z [N] in the keyframe)."""
+    from rg_core.map.frames import prepare_frame
+
+    mapper = Mapper(MapConfig(width=160, iters_per_keyframe=10, seed_colour_error=0.0, split_px=0.0))
+    rgb, depth, K, c2w, stamp = frame_args(synth_scene.train[0])
+    mapper.add_frame(rgb, depth, K, c2w, stamp)
+    kf = mapper.keyframes[0]
+    R, t = torch.as_tensor(c2w[:3, :3]).float(), torch.as_tensor(c2w[:3, 3]).float()
+
+    def pixels(means):
+        pc = (means - t) @ R
+        return kf.K[0, 0] * pc[:, 0] / pc[:, 2] + kf.K[0, 2], kf.K[1, 1] * pc[:, 1] / pc[:, 2] + kf.K[1, 2], pc[:, 2]
+    return mapper, prepare_frame(rgb, depth, K, c2w, stamp, 160), kf, pixels
+
+
 def test_densify_seeds_only_where_the_colour_is_wrong(synth_scene):
     """Gaussians that render a region in the wrong colour get half-stride seeds there, on the
     surface (and nowhere else more than before); a threshold above any L1 error adds nothing."""
     import copy
 
-    from rg_core.map.frames import prepare_frame
-
-    mapper = Mapper(MapConfig(width=160, iters_per_keyframe=10, seed_colour_error=0.0))
-    rgb, depth, K, c2w, stamp = frame_args(synth_scene.train[0])
-    mapper.add_frame(rgb, depth, K, c2w, stamp)
-    kf = mapper.keyframes[0]
-    fr = prepare_frame(rgb, depth, K, c2w, stamp, 160)
+    mapper, fr, kf, pixels = _one_keyframe(synth_scene)
     w, h = kf.size
-    R, t = torch.as_tensor(c2w[:3, :3]).float(), torch.as_tensor(c2w[:3, 3]).float()
-
-    def pixels(means):  # [N, 3] -> u, v, z in the keyframe
-        pc = (means - t) @ R
-        return kf.K[0, 0] * pc[:, 0] / pc[:, 2] + kf.K[0, 2], kf.K[1, 1] * pc[:, 1] / pc[:, 2] + kf.K[1, 2], pc[:, 2]
 
     n0 = len(mapper.gaussians)
     before = copy.deepcopy(mapper)
@@ -401,10 +409,10 @@ def test_coarse_to_fine_matches_full_resolution_quality(synth_scene):
 
 def test_final_refinement_stops_on_convergence(synth_scene):
     """refine_tol 0: the whole final budget; a tolerance no pass can meet stops after the floor of
-    refine_min_passes full passes; a tiny one runs until a pass barely helps, fewer than the ceiling.
+    refine_min_passes full passes; the default (0.3 %) runs until a pass barely helps, fewer than the ceiling.
     The same seed stops at the same iteration."""
     runs = {}
-    for tol in (0.0, 0.99, 1e-3, 1e-3):
+    for tol in (0.0, 0.99, 3e-3, 3e-3):
         mapper = Mapper(MapConfig(**{**SMALL, "refine_tol": tol, "refine_min_passes": 3}))
         for f in synth_scene.train[:4]:
             mapper.add_frame(*frame_args(f))
@@ -414,7 +422,96 @@ def test_final_refinement_stops_on_convergence(synth_scene):
         runs.setdefault(tol, []).append((r, mapper.gaussians.means.clone()))
     assert runs[0.0][0][0] == {"iters": 60 * n, "of": 60 * n, "stopped": "budget"}
     assert runs[0.99][0][0]["iters"] == 3 * n and runs[0.99][0][0]["stopped"] == "converged"
-    (a, ma), (b, mb) = runs[1e-3]
+    (a, ma), (b, mb) = runs[3e-3]
     assert 3 * n < a["iters"] < 60 * n and a["stopped"] == "converged" and a == b and torch.equal(ma, mb)
     mapper.refine(10, converge=False)  # a fixed budget on request (the node's idle slices)
     assert mapper.last_refine["iters"] == 10
+
+
+def test_split_draws_two_children_from_each_parent():
+    """GaussianModel.split: each parent becomes two children at the end, with scales / 1.6 and the
+    parent's rotation, opacity and colour; over many splits the children's offsets from the parent
+    have its covariance R S^2 R^T. Other Gaussians keep their values and order."""
+    from torch.testing import assert_close
+
+    from rg_core.map.gaussians import PARAMS, GaussianModel
+    from rg_core.render.projection import quat_to_rotmat
+
+    n, s = 4000, torch.tensor([0.01, 0.04, 0.002])
+    axis = torch.tensor([1.0, -2.0, 0.5]) / torch.tensor([1.0, -2.0, 0.5]).norm()
+    q = torch.cat([torch.tensor([np.cos(0.6)]), np.sin(0.6) * axis]).float()           # w first, 1.2 rad
+    g = GaussianModel()
+    g.append(torch.zeros(1, 3), torch.full((1,), 0.5), torch.ones(1, 3), 0.3)          # a bystander
+    g.append(torch.tensor([[1.0, 2.0, 3.0]]).repeat(n, 1), s.repeat(n, 1), torch.rand(n, 3), 0.7)
+    g.quats[1:] = q
+    before = {k: v.clone() for k, v in g.tensors().items()}
+    g.split(torch.arange(1, n + 1), torch.Generator().manual_seed(0))
+    assert len(g) == 2 * n + 1
+    for k in PARAMS:
+        assert_close(getattr(g, k)[0], before[k][0])
+    kids = slice(1, None)
+    assert_close(g.scales[kids], (s / 1.6).expand(2 * n, 3))
+    assert_close(g.quats[kids], q.expand(2 * n, 4))
+    assert_close(g.opacities[kids], torch.full((2 * n,), 0.7))
+    assert_close(g.colors[kids], before["colors"][1:].repeat(2, 1))
+    d = g.means[kids].double() - torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)      # [2n, 3]
+    R = quat_to_rotmat(q[None].double())[0]
+    expect = R @ torch.diag(s.double() ** 2) @ R.T
+    assert_close(d.T @ d / len(d), expect, atol=0.05 * float(s.max()) ** 2, rtol=0)
+    g.split(torch.zeros(0, dtype=torch.long))                                           # nothing: no change
+    assert len(g) == 2 * n + 1
+
+
+def test_densify_splits_the_coarse_gaussians_drawing_wrong_colours(synth_scene):
+    """After a keyframe, Gaussians spanning more than split_px pixels that draw pixels in the wrong
+    colour are split (and only those); the optimiser's state follows; under max_gaussians only as
+    many split as there is room for; split_px 0 splits none."""
+    import copy
+
+    mapper, fr, kf, pixels = _one_keyframe(synth_scene)
+    w, _ = kf.size
+
+    unpainted = copy.deepcopy(mapper)
+    unpainted.cfg.seed_colour_error, unpainted.cfg.split_px = 0.3, 2.0
+    unpainted._densify(fr, kf)
+    base = unpainted.totals["split"]                 # what the map splits anyway
+    with torch.no_grad():   # paint the Gaussians projecting into the left third in the opposite colour
+        u, _, _ = pixels(mapper.gaussians.means)
+        left = u < w / 3
+        mapper.gaussians.colors[left] = 1.0 - mapper.gaussians.colors[left]
+    mapper.cfg.seed_colour_error = 0.3
+    fresh = copy.deepcopy(mapper)
+    off = copy.deepcopy(fresh)
+    off._densify(fr, kf)
+    assert off.totals["split"] == 0
+
+    n0 = len(mapper.gaussians)
+    old = mapper.gaussians.state_dict()
+    mapper.cfg.split_px = 2.0
+    span_old = old["log_scales"].exp().max(1).values * float(kf.K[0, 0]) / pixels(old["means"])[2]
+    added, _ = mapper._densify(fr, kf)
+    n_split = mapper.totals["split"]
+    g = mapper.gaussians
+    assert n_split > 20 and len(g) == n0 + n_split + added
+    kept = n0 - n_split
+    # The survivors keep their values and order: exactly the originals minus the split ones.
+    where = {tuple(m): i for i, m in enumerate(old["means"].tolist())}
+    j = torch.tensor([where[tuple(m)] for m in g.means[:kept].tolist()])
+    assert bool((j[1:] > j[:-1]).all())
+    split = torch.ones(n0, dtype=torch.bool)
+    split[j] = False
+    assert int(split.sum()) == n_split
+    assert bool((span_old[split] > 2.0).all())                    # only wide ones ...
+    u_p, _, _ = pixels(old["means"][split])
+    assert int((u_p < w / 3 + 6).sum()) > 20 and int((u_p >= w / 3 + 6).sum()) <= base   # ... drawing wrong colours
+    kids = g.means[kept:kept + 2 * n_split]
+    kid_scales = (g.log_scales[kept:kept + 2 * n_split] + np.log(1.6)).sort(0).values   # children: widest first
+    assert bool(torch.isclose(kid_scales, old["log_scales"][split].repeat(2, 1).sort(0).values, atol=1e-5).all())
+    assert bool(torch.isfinite(kids).all())
+    assert all(mapper.optim.m[k].shape[0] == len(g) for k in ("means", "colors", "opacity_logits"))
+    mapper._optimise(3)                                            # optimisation goes on
+
+    bounded = copy.deepcopy(fresh)
+    bounded.cfg.split_px, bounded.cfg.max_gaussians, bounded.cfg.evict = 2.0, len(bounded.gaussians) + 5, False
+    bounded._densify(fr, kf)
+    assert bounded.totals["split"] == 5 and len(bounded.gaussians) <= bounded.cfg.max_gaussians

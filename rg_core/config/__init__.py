@@ -167,6 +167,12 @@ class MapConfig:
     seed_colour_error: float = 0.3
     """After a keyframe's optimisation, seed at half the stride where the map still renders it with a
     per-pixel L1 colour error above this (detail the map lacks: densification). 0 turns it off."""
+    split_px: Annotated[float, Interval(ge=0.0)] = 2.0
+    """With that densification, a Gaussian drawing such a pixel whose largest axis spans more than
+    this many pixels in the keyframe is split in two first (Mapper._split_coarse; a seed spans
+    seed_scale x stride = 2.4 px). Sorted by its centre, a coarse table Gaussian hides a knife's
+    thin Gaussians; splitting it lifted a synthetic room's explicit visible mIoU 93.1 -> 94.1
+    (seed 501, with depth; 77.6 -> 80.0 rendered only). 0: off."""
     unexplained_alpha: float = 0.5
     """Pixels the map covers with less accumulated alpha are unexplained."""
     depth_error_abs: float = 0.03

@@ -52,6 +52,25 @@ class GaussianModel:
         for k, v in new.items():
             setattr(self, k, torch.cat([getattr(self, k).detach(), v]))
 
+    def split(self, idx: torch.Tensor, generator: torch.Generator | None = None, factor: float = 1.6) -> None:
+        """Replace the Gaussians idx [M] by two each, drawn from the parent's own distribution, with
+        scales / factor (3D Gaussian Splatting's split); the children go to the end, the parents away."""
+        if not len(idx):
+            return
+        from ..render.projection import quat_to_rotmat   # render is below map: no cycle
+        idx = torch.as_tensor(idx, dtype=torch.long)
+        R = quat_to_rotmat(self.quats[idx])                                          # [M, 3, 3]
+        s = self.scales[idx]                                                         # [M, 3]
+        eps = torch.randn((2,) + tuple(s.shape), generator=generator)                # [2, M, 3]
+        means = (self.means[idx][None] + torch.einsum("mij,kmj->kmi", R, eps * s[None])).reshape(-1, 3)
+        new = {"means": means, "log_scales": (self.log_scales[idx] - math.log(factor)).repeat(2, 1),
+               "quats": self.quats[idx].repeat(2, 1), "opacity_logits": self.opacity_logits[idx].repeat(2),
+               "colors": self.colors[idx].repeat(2, 1)}
+        keep = torch.ones(len(self), dtype=torch.bool)
+        keep[idx] = False
+        for k in PARAMS:
+            setattr(self, k, torch.cat([getattr(self, k).detach()[keep], new[k].detach()]))
+
     def keep(self, mask: torch.Tensor) -> None:
         """Keep only Gaussians where mask [N] is True."""
         for k in PARAMS:

@@ -99,7 +99,7 @@ class Mapper:
         self.frames_seen = 0
         self.last_stamp: float | None = None
         self.totals = {"added": 0, "dropped": 0, "pruned": 0, "evicted": 0, "out_of_order": 0, "keyframe_iters": 0,
-                       "keyframes_dropped": 0, "keyframes_replaced": 0, "revisits": 0}
+                       "keyframes_dropped": 0, "keyframes_replaced": 0, "revisits": 0, "split": 0}
         self.protected: list[tuple[np.ndarray, np.ndarray]] = []   # boxes (lo, hi) eviction never touches
         self.seconds = {"prepare": 0.0, "check": 0.0, "seed": 0.0, "optimise": 0.0, "prune": 0.0, "refine": 0.0}
         self._rng = torch.Generator().manual_seed(self.cfg.seed)
@@ -268,16 +268,43 @@ class Mapper:
     @torch.no_grad()
     def _densify(self, fr: PreparedFrame, kf: Keyframe) -> tuple[int, int]:
         """Detail the map still lacks after optimising a keyframe: where it renders the right surface
-        in the wrong colour (L1 above `seed_colour_error`), seed at half the stride, placed by the
-        sensor depth or, where the sensor has none, by the map's own rendered surface."""
+        in the wrong colour (L1 above `seed_colour_error`), split the coarse Gaussians drawing it
+        (`split_px`) and seed at half the stride, placed by the sensor depth or, where the sensor has
+        none, by the map's own rendered surface."""
         w, h = kf.size
-        out = self.render(kf.K, kf.cam_to_world, w, h)
+        out = self.render(kf.K, kf.cam_to_world, w, h, return_ids=True)
         valid = kf.depth > 0
         covered = out.alpha > 0.5
         depth = torch.where(valid, kf.depth, out.depth / out.alpha.clamp(min=1e-6))
         err = (out.channels + (1.0 - out.alpha)[..., None] * self.gaussians.background - kf.rgb).abs().mean(-1)
         detail = (valid | covered) & (depth > 0) & (err > self.cfg.seed_colour_error)
-        return self._seed(fr, detail, depth, max(1, self.cfg.seed_stride // 2))
+        stride = max(1, self.cfg.seed_stride // 2)
+        if self.cfg.split_px > 0 and detail.any():
+            self._split_coarse(out.ids[detail], kf)
+        return self._seed(fr, detail, depth, stride)
+
+    def _split_coarse(self, ids: torch.Tensor, kf: Keyframe) -> int:
+        """Split (GaussianModel.split) the Gaussians ids [M] (-1: none) whose largest axis spans more than
+        `split_px` pixels in keyframe kf: a coarse Gaussian that draws detail pixels in the wrong
+        colour. Sorted by its centre's depth, it also hides the detail's own Gaussians behind it (a
+        knife on a table under one big table Gaussian). A split adds one Gaussian: under
+        max_gaussians only the widest split. Returns how many were split."""
+        g = self.gaussians
+        ids = torch.unique(ids[ids >= 0])
+        if not len(ids):
+            return 0
+        w2c = torch.linalg.inv(torch.as_tensor(kf.cam_to_world, dtype=torch.float64))
+        z = (g.means[ids].double() @ w2c[2, :3] + w2c[2, 3]).clamp(min=self.cfg.near)          # [M] metres
+        span = g.scales[ids].max(1).values.double() * float(kf.K[0, 0]) / z                   # [M] px
+        wide = span > self.cfg.split_px
+        big = ids[wide][torch.argsort(span[wide], descending=True)][:max(self.cfg.max_gaussians - len(g), 0)]
+        keep = torch.ones(len(g), dtype=torch.bool)
+        keep[big] = False
+        g.split(big, self._rng)
+        self.optim.keep(keep)     # the parents' moments go; the children's start at zero
+        self.optim.sync()
+        self.totals["split"] += len(big)
+        return len(big)
 
     def refine(self, iters: int, converge: bool = True) -> float:
         """Optimise over all keyframes (what a robot does when idle, and `rg map` at the end of a
