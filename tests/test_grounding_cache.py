@@ -71,8 +71,11 @@ def test_map_and_field_changes_invalidate(own_map, synth_scene):
     cached, plain = grounders(m, embed, names)
     cached.ground(names[0], mode="explicit")
     s0, n0, f0 = cached.spacing(), len(m.gaussians), m.frames_seen
-    # Idle refinement: the same Gaussians and frames, moved.
+    # Idle refinement: the same Gaussians and frames, moved (none pruned: a count cannot tell).
+    prune = m.cfg.prune_opacity, m.cfg.prune_scale
+    m.cfg.prune_opacity, m.cfg.prune_scale = 0.0, float("inf")
     m.refine(3)
+    m.cfg.prune_opacity, m.cfg.prune_scale = prune
     assert len(m.gaussians) == n0 and m.frames_seen == f0
     inv = cached.cache.invalidations
     same(cached.ground(names[1], mode="explicit"), plain.ground(names[1], mode="explicit"))
