@@ -480,8 +480,7 @@ def test_densify_splits_the_coarse_gaussians_drawing_wrong_colours(synth_scene):
         left = u < w / 3
         mapper.gaussians.colors[left] = 1.0 - mapper.gaussians.colors[left]
     mapper.cfg.seed_colour_error = 0.3
-    fresh = copy.deepcopy(mapper)
-    off = copy.deepcopy(fresh)
+    off, bounded = copy.deepcopy(mapper), copy.deepcopy(mapper)
     off._densify(fr, kf)
     assert off.totals["split"] == 0
 
@@ -511,7 +510,6 @@ def test_densify_splits_the_coarse_gaussians_drawing_wrong_colours(synth_scene):
     assert all(mapper.optim.m[k].shape[0] == len(g) for k in ("means", "colors", "opacity_logits"))
     mapper._optimise(3)                                            # optimisation goes on
 
-    bounded = copy.deepcopy(fresh)
     bounded.cfg.split_px, bounded.cfg.max_gaussians, bounded.cfg.evict = 2.0, len(bounded.gaussians) + 5, False
     bounded._densify(fr, kf)
     assert bounded.totals["split"] == 5 and len(bounded.gaussians) <= bounded.cfg.max_gaussians

@@ -9,6 +9,8 @@ import math
 
 import torch
 
+from ..render.projection import quat_to_rotmat
+
 PARAMS = ("means", "log_scales", "quats", "opacity_logits", "colors")  # one row per Gaussian
 GLOBALS = ("background",)  # shared by the whole map
 
@@ -57,7 +59,6 @@ class GaussianModel:
         scales / factor (3D Gaussian Splatting's split); the children go to the end, the parents away."""
         if not len(idx):
             return
-        from ..render.projection import quat_to_rotmat   # render is below map: no cycle
         idx = torch.as_tensor(idx, dtype=torch.long)
         R = quat_to_rotmat(self.quats[idx])                                          # [M, 3, 3]
         s = self.scales[idx]                                                         # [M, 3]

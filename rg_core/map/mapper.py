@@ -278,10 +278,9 @@ class Mapper:
         depth = torch.where(valid, kf.depth, out.depth / out.alpha.clamp(min=1e-6))
         err = (out.channels + (1.0 - out.alpha)[..., None] * self.gaussians.background - kf.rgb).abs().mean(-1)
         detail = (valid | covered) & (depth > 0) & (err > self.cfg.seed_colour_error)
-        stride = max(1, self.cfg.seed_stride // 2)
         if self.cfg.split_px > 0 and detail.any():
             self._split_coarse(out.ids[detail], kf)
-        return self._seed(fr, detail, depth, stride)
+        return self._seed(fr, detail, depth, max(1, self.cfg.seed_stride // 2))
 
     def _split_coarse(self, ids: torch.Tensor, kf: Keyframe) -> int:
         """Split (GaussianModel.split) the Gaussians ids [M] (-1: none) whose largest axis spans more than
@@ -293,8 +292,8 @@ class Mapper:
         ids = torch.unique(ids[ids >= 0])
         if not len(ids):
             return 0
-        w2c = torch.linalg.inv(torch.as_tensor(kf.cam_to_world, dtype=torch.float64))
-        z = (g.means[ids].double() @ w2c[2, :3] + w2c[2, 3]).clamp(min=self.cfg.near)          # [M] metres
+        _, z = project(g.means[ids].double().numpy(), np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64))
+        z = torch.from_numpy(z).clamp(min=self.cfg.near)                                        # [M] metres
         span = g.scales[ids].max(1).values.double() * float(kf.K[0, 0]) / z                   # [M] px
         wide = span > self.cfg.split_px
         big = ids[wide][torch.argsort(span[wide], descending=True)][:max(self.cfg.max_gaussians - len(g), 0)]
