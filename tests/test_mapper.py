@@ -513,3 +513,36 @@ def test_densify_splits_the_coarse_gaussians_drawing_wrong_colours(synth_scene):
     bounded.cfg.split_px, bounded.cfg.max_gaussians, bounded.cfg.evict = 2.0, len(bounded.gaussians) + 5, False
     bounded._densify(fr, kf)
     assert bounded.totals["split"] == 5 and len(bounded.gaussians) <= bounded.cfg.max_gaussians
+
+
+def test_colours_stay_in_the_cameras_range(synth_scene):
+    """An optimisation step keeps every colour in [0, 1]: a colour no camera sees is the optimiser
+    darkening or lighting a pixel through the wrong Gaussian (one sorted in front of the detail)."""
+    mapper, _, kf, _ = _one_keyframe(synth_scene)
+    for target, start, bound in ((0.0, 0.005, 0.0), (1.0, 0.995, 1.0)):
+        mapper.gaussians.colors = torch.full_like(mapper.gaussians.colors, start)
+        flat = Keyframe(kf.index, kf.stamp, kf.cam_to_world, kf.K, torch.full_like(kf.rgb, target), kf.depth)
+        mapper._step(flat)       # Adam's first step moves each colour by lr_colors (0.01): past the bound
+        colors = mapper.gaussians.colors
+        assert float(colors.min()) >= 0.0 and float(colors.max()) <= 1.0
+        assert int((colors == bound).sum()) > 100, "the step did not push the colours onto the bound"
+
+
+def test_map_renders_antialiased_and_older_maps_classic(mapped, synth_scene, tmp_path):
+    """The map renders (and so trains, grounds and masks) with rasterize(antialiased=True); a map
+    file saved before the option existed was trained with the classic filter and loads as such."""
+    assert mapped.cfg.antialiased
+    f, kf = synth_scene.test[0], mapped.keyframes[0]
+    w, h = kf.size
+    g = mapped.gaussians
+    cam = mapped.camera(kf.K, f.cam_to_world, w, h)
+    aa = rasterize(g.means, g.scales, g.quats, g.opacities, g.colors, cam, antialiased=True)
+    classic = rasterize(g.means, g.scales, g.quats, g.opacities, g.colors, cam)
+    out = mapped.render(kf.K, f.cam_to_world, w, h)
+    torch.testing.assert_close(out.channels, aa.channels)
+    assert float((out.alpha - classic.alpha).abs().max()) > 1e-3    # the two filters do differ here
+    path = save_map(mapped, tmp_path / "m.rgmap")
+    data = torch.load(path, weights_only=True)
+    del data["config"]["antialiased"]
+    torch.save(data, path)
+    assert not load_map(path).cfg.antialiased

@@ -8,7 +8,7 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from render_util import pinhole, random_gaussians, render_with_grads
-from rg_core.render import Camera, fast_cpu, project_gaussians, rasterize
+from rg_core.render import EPS2D, Camera, fast_cpu, project_gaussians, rasterize
 
 pytestmark = pytest.mark.skipif(not fast_cpu.available(), reason="fast CPU rasterizer not built")
 BACKENDS = ("cpu", "reference")
@@ -51,7 +51,8 @@ def test_scales_from_micrometres_to_kilometres(s):
     assert float(out.alpha.detach().max()) > 0.0  # even a 1 micrometre Gaussian stays visible (dilation)
 
 
-def test_flat_and_degenerate_covariances():
+@pytest.mark.parametrize("antialiased", [False, True])
+def test_flat_and_degenerate_covariances(antialiased):
     params = cat(
         one([0.0, 0.0, 2.0], [0.3, 0.3, 0.0]),                  # perfectly flat disc facing the camera
         one([0.1, 0.0, 2.0], [0.3, 0.0, 0.3], (0.7, 0.7, 0, 0)),  # flat disc seen edge-on
@@ -59,7 +60,37 @@ def test_flat_and_degenerate_covariances():
         one([-0.1, 0.0, 2.0], [1e-9, 0.5, 1e-9]),               # a needle
         one([0.0, -0.1, 2.0], [-0.1, 0.2, 0.1]),                # negative scale (|s| is used)
     )
-    check_finite(params, pinhole(32, 24))
+    check_finite(params, pinhole(32, 24), antialiased=antialiased)
+
+
+@pytest.mark.parametrize("s", [1e-9, 1e-6, 1e-3, 1.0, 1e3])
+def test_antialiased_scales_from_nanometres_to_kilometres(s):
+    params = cat(one([0.0, 0.0, 2.0], [s, s, s]), one([0.1, 0.05, 3.0], [s, 0.5 * s, 2 * s]))
+    check_finite(params, pinhole(24, 18), antialiased=True)
+
+
+@pytest.mark.parametrize("std_px", [0.02, 0.1, 0.3, 1.0, 3.0])
+def test_antialiased_keeps_the_integral_the_classic_filter_inflates(std_px):
+    """A Gaussian of std s px and opacity o integrates to o 2 pi s^2 px over the image. Antialiased
+    (Mip-Splatting's 2D filter) keeps that below a pixel too, where the classic dilation draws it
+    as if it covered a whole pixel; both agree on wide Gaussians."""
+    f, z, o = 100.0, 2.0, 0.6
+    cam = pinhole(64, 48, f=f)
+    s = std_px * z / f
+    params = one([0.0, 0.0, z], [s, s, s], opacity=o)
+    ideal = o * 2 * math.pi * std_px ** 2
+    aa = float(rasterize(*params, cam, antialiased=True).alpha.sum())
+    classic = float(rasterize(*params, cam).alpha.sum())
+    dilated = o * 2 * math.pi * (std_px ** 2 + EPS2D)             # classic: the dilated Gaussian at full peak
+    assert abs(aa - ideal) <= 0.1 * ideal + 2e-3, (aa, ideal)    # the 1/255 cut-off trims the tails
+    assert abs(classic - dilated) <= 0.1 * dilated, (classic, dilated)
+
+
+def test_antialiased_edge_on_disc_covers_nothing():
+    disc = one([0.0, 0.0, 2.0], [0.3, 0.0, 0.3])     # flat along the image's y: seen edge-on
+    cam = pinhole(32, 24)
+    assert float(rasterize(*disc, cam).alpha.max()) > 0.3          # classic: a dilated line
+    assert float(rasterize(*disc, cam, antialiased=True).alpha.max()) < 1e-3
 
 
 @pytest.mark.parametrize("quat", [(0.0, 0.0, 0.0, 0.0), (1e30, 2e30, 0.0, 1e30), (1e-30, 0.0, 1e-30, 0.0),

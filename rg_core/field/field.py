@@ -362,7 +362,8 @@ class FeatureField:
         culled = len(idx) < len(means)
         sub = (lambda t: t[idx]) if culled else (lambda t: t)
         ch = torch.cat([sub(g.colors.detach()), sub(latents)], 1) if colour else sub(latents)
-        out = rasterize(sub(means), sub(scales), sub(g.quats.detach()), sub(opac), ch, cam, return_ids=return_ids)
+        out = rasterize(sub(means), sub(scales), sub(g.quats.detach()), sub(opac), ch, cam, return_ids=return_ids,
+                        antialiased=self.mapper.cfg.antialiased)
         if culled and return_ids and out.ids is not None:
             out.ids = torch.where(out.ids >= 0, idx[out.ids.clamp(min=0)], out.ids)
         return out

@@ -459,8 +459,9 @@ class Grounder:
         member = torch.zeros(N, 1)
         member[torch.from_numpy(ids)] = 1.0
         args = (g.means.detach(), g.scales.detach(), g.quats.detach(), g.opacities.detach())
-        full = rasterize(*args, member, cam)
-        alone = rasterize(*args, member, cam, subset=torch.from_numpy(ids))
+        aa = self.mapper.cfg.antialiased
+        full = rasterize(*args, member, cam, antialiased=aa)
+        alone = rasterize(*args, member, cam, subset=torch.from_numpy(ids), antialiased=aa)
         a = self.gcfg.mask_alpha
         share = full.channels[..., 0] / full.alpha.clamp(min=1e-6)
         visible = ((full.alpha > a) & (share > self.gcfg.visible_share)).numpy()
@@ -472,7 +473,7 @@ class Grounder:
         if depth is not None and self.gcfg.visible_depth_tol > 0:
             others = torch.ones(N, dtype=torch.bool)
             others[torch.from_numpy(ids)] = False
-            rest = rasterize(*args, member, cam, subset=others)
+            rest = rasterize(*args, member, cam, subset=others, antialiased=aa)
             out = refine_visible(visible, alone.alpha.numpy(), alone.depth.numpy(), rest.alpha.numpy(),
                                  rest.depth.numpy(), depth, self.gcfg.visible_depth_tol)
             apart = surfaces_apart(alone.alpha.numpy(), alone.depth.numpy(), rest.alpha.numpy(), rest.depth.numpy(),

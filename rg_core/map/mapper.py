@@ -116,7 +116,8 @@ class Mapper:
         background colour where alpha < 1 (a picture), otherwise uncovered pixels stay black."""
         g = self.gaussians
         return rasterize(g.means, g.scales, g.quats, g.opacities, g.colors, self.camera(K, cam_to_world, width, height),
-                         subset=subset, return_ids=return_ids, background=g.background if background else None)
+                         subset=subset, return_ids=return_ids, background=g.background if background else None,
+                         antialiased=self.cfg.antialiased)
 
     # ------------------------------------------------------------------------------ ingestion
 
@@ -372,7 +373,8 @@ class Mapper:
         params = {k: v.detach().requires_grad_(True) for k, v in g.tensors().items()}
         cam = self.camera(kf.K, kf.cam_to_world, w, h)
         out = rasterize(params["means"], torch.exp(params["log_scales"]), params["quats"],
-                        torch.sigmoid(params["opacity_logits"]), params["colors"], cam, eps2d=EPS2D * scale * scale)
+                        torch.sigmoid(params["opacity_logits"]), params["colors"], cam, eps2d=EPS2D * scale * scale,
+                        antialiased=c.antialiased)
         valid = kf.depth > 0
         nv = valid.sum().clamp(min=1)
         # Colour: the whole image against the render composited over the learnt background
@@ -386,6 +388,7 @@ class Mapper:
             loss = loss + c.lambda_opacity * torch.sigmoid(params["opacity_logits"]).mean()
         loss.backward()
         self.optim.step({k: p.grad for k, p in params.items()})
+        g.colors = g.colors.clamp(0.0, 1.0)   # what a camera sees: no darkening through the wrong Gaussian
         return float(loss.detach())
 
     def protect(self, lo: np.ndarray, hi: np.ndarray, margin: float = 0.02, keep_last: int = 16) -> None:

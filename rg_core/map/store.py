@@ -66,7 +66,8 @@ def load_map(path: str | Path) -> Mapper:
         raise MapFileError(f"{path}: map format version {data.get('version')}, this build reads versions "
                            f"{', '.join(map(str, READABLE))}")
     try:
-        cfg = config_from_dict(data["config"], MapConfig)
+        # Maps saved before `antialiased` existed were trained with the classic filter.
+        cfg = config_from_dict({"antialiased": False, **data["config"]}, MapConfig)
     except ConfigError as exc:
         raise MapFileError(f"{path}: bad configuration in map: {exc}") from exc
     mapper = Mapper(cfg)

@@ -11,7 +11,8 @@ from .camera import Camera
 from .types import RenderOutput
 
 
-def rasterize_gsplat(means, scales, quats, opacities, channels, camera: Camera, background, eps2d: float):
+def rasterize_gsplat(means, scales, quats, opacities, channels, camera: Camera, background, eps2d: float,
+                     antialiased: bool = False):
     try:
         from gsplat import rasterization
     except ImportError as exc:
@@ -28,6 +29,6 @@ def rasterize_gsplat(means, scales, quats, opacities, channels, camera: Camera, 
         means.float(), quats.float(), scales.float().abs(), opacities.float().clamp(0, 1), channels.float(),
         camera.world_to_cam.to(dev, torch.float32)[None], K[None], camera.width, camera.height,
         near_plane=camera.near, far_plane=camera.far, eps2d=eps2d, render_mode="RGB+ED",
-        backgrounds=bg, rasterize_mode="classic")
+        backgrounds=bg, rasterize_mode="antialiased" if antialiased else "classic")
     C = channels.shape[1]
     return RenderOutput(colors[0, ..., :C], colors[0, ..., C], alphas[0, ..., 0], None, None)

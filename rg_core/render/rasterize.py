@@ -11,7 +11,7 @@ import torch
 
 from . import fast_cpu
 from .camera import Camera
-from .projection import EPS2D, project_gaussians
+from .projection import EPS2D, Projected, project_gaussians
 from .reference import rasterize_reference
 from .types import RenderOutput
 
@@ -38,12 +38,14 @@ def _select(subset: torch.Tensor | None, n: int) -> torch.Tensor | None:
 def rasterize(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor, opacities: torch.Tensor,
               channels: torch.Tensor, camera: Camera, *, subset: torch.Tensor | None = None,
               background: torch.Tensor | None = None, return_ids: bool = False, backend: str = "auto",
-              tile: int = 16, eps2d: float = EPS2D) -> RenderOutput:
+              tile: int = 16, eps2d: float = EPS2D, antialiased: bool = False) -> RenderOutput:
     """Render Gaussians into `camera` with front-to-back alpha compositing.
 
     means [N, 3] (world, m), scales [N, 3] (std devs, m), quats [N, 4] (w, x, y, z; any norm),
     opacities [N] in [0, 1], channels [N, C] (any features: RGB, latent, instance ...). `subset`
     (bool [N] or indices) renders only those Gaussians; `ids` then still index the full set.
+    `antialiased` scales each opacity so that the eps2d dilation keeps the Gaussian's integral
+    (`antialias`; gsplat's "antialiased" mode), else its peak (3DGS's classic filter).
     Gradients flow to means, scales, quats, opacities and channels.
     """
     N = means.shape[0]
@@ -71,7 +73,7 @@ def rasterize(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor, op
     if backend == "gsplat":
         from .gsplat_backend import rasterize_gsplat
 
-        out = rasterize_gsplat(means, scales, quats, opacities, channels, camera, background, eps2d)
+        out = rasterize_gsplat(means, scales, quats, opacities, channels, camera, background, eps2d, antialiased)
         if idx is not None and out.ids is not None:
             out.ids = torch.where(out.ids >= 0, idx.to(out.ids.device)[out.ids.clamp(min=0)], out.ids)
         return out
@@ -80,6 +82,8 @@ def rasterize(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor, op
         proj = fast_cpu.project_fast(means, scales, quats, opacities, camera, eps2d)
     else:
         proj = project_gaussians(means, scales, quats, opacities, camera, eps2d)
+    if antialiased:
+        proj = antialias(proj, eps2d)
     W, H = camera.width, camera.height
     # Depth is composited as one more channel, then normalised by alpha: the expected depth.
     ch = torch.cat([channels.float(), proj.depths[:, None]], 1)
@@ -97,3 +101,22 @@ def rasterize(means: torch.Tensor, scales: torch.Tensor, quats: torch.Tensor, op
     if return_ids and ids is not None and idx is not None:
         ids = torch.where(ids >= 0, idx[ids.clamp(min=0)], ids)
     return RenderOutput(color, depth, alpha, ids if return_ids else None, proj)
+
+
+def antialias(proj: Projected, eps2d: float = EPS2D) -> Projected:
+    """Mip-Splatting's 2D filter (gsplat's "antialiased" mode): the low-pass dilation by eps2d px^2
+    keeps each Gaussian's integral instead of its peak, opacity x sqrt(det cov / det (cov + eps2d)),
+    so a Gaussian smaller than a pixel in a far view covers the share of the pixel it really does
+    instead of a whole pixel. Differentiable through the conics [N, 3] (inverse dilated covariances)."""
+    A, B, C = proj.conics.double().unbind(-1)
+    det_conic = A * C - B * B
+    ok = det_conic > 0
+    det_d = torch.where(ok, 1.0 / torch.where(ok, det_conic, torch.ones_like(det_conic)), torch.zeros_like(A))  # det(cov + eps)
+    tr_d = (A + C) * det_d                                                                                     # tr(cov + eps)
+    det = det_d - eps2d * tr_d + eps2d * eps2d                                                            # det(cov)
+    # A flat Gaussian seen edge-on has det 0 (rounding: below): it covers nothing. The guarded
+    # sqrt keeps its gradient finite.
+    live = ok & (det > 1e-20 * det_d)
+    comp = torch.where(live, torch.sqrt(torch.where(live, det / torch.where(ok, det_d, torch.ones_like(det_d)), 1.0)),
+                       torch.zeros_like(det)).clamp(max=1.0)
+    return Projected(proj.means2d, proj.conics, proj.depths, (proj.opacities * comp.float()), proj.radii)
