@@ -441,6 +441,7 @@ class MapWorker:
                 "queue_size": self.queue.maxsize, "dropped": self.queue.dropped, "received": self.queue.put_count,
                 "evicted": int(m.totals.get("evicted", 0)), "keyframes_dropped": int(m.totals.get("keyframes_dropped", 0)),
                 "keyframes_replaced": int(m.totals.get("keyframes_replaced", 0)), "revisits": int(m.totals.get("revisits", 0)),
+                "split": int(m.totals.get("split", 0)), "pruned": int(m.totals.get("pruned", 0)),
                 "supervised_keyframes": self._supervised_count, "perception": self.perception_state,
                 "field_steps": int(getattr(field, "steps", 0)) if field is not None else 0,
                 "field_stop": describe(getattr(field, "stop", None)),

@@ -77,6 +77,7 @@ def test_flood_while_map_is_locked_drops_oldest_and_stays_bounded(worker):
     assert wait_for(lambda: worker.processed + worker.rejected == worker.queue.put_count - worker.queue.dropped)
     st = worker.stats()
     assert st["dropped"] == worker.queue.dropped and st["queue"] == 0 and st["keyframes"] >= 1
+    assert (st["split"], st["pruned"]) == (worker.mapper.totals["split"], worker.mapper.totals["pruned"])
     # the frames that survived are the newest ones
     assert worker.mapper.last_stamp == 9.0
 
