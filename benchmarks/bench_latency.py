@@ -94,7 +94,9 @@ def child_warm(map_path: str, queries: list, cache: bool | None, grow: int = 0) 
     m = load_map(map_path)
     kw = {} if cache is None else {"cache": cache}
     g = Grounder(m, m.field, RGConfig(), **kw)
-    g.ground(queries[0][0], mode=queries[0][1])  # warm-up: models, vocabulary
+    if hasattr(g, "load_models"):   # as the node does once its field answers (older baselines load on first use)
+        g.load_models()
+    g.ground(queries[0][0], mode=queries[0][1])  # warm-up: vocabulary
     rows = []
 
     def ask(rnd: str, q: str, mode: str, expect: str, **extra) -> None:

@@ -117,6 +117,7 @@ class MapWorker:
         self.mapper = mapper if mapper is not None else Mapper(self.cfg.map)
         self.field = getattr(self.mapper, "field", None)
         self._grounder = None
+        self._models_loaded = False   # the Grounder's models, loaded once the field first answers
         self._perception: tuple[Any, Any] | None = None   # (mask generator, embedder)
         self._perception_loader = perception_loader or self._load_perception
         self.perception_state = "off" if not self.wcfg.features else "not started"
@@ -206,7 +207,24 @@ class MapWorker:
             return True
         if self.wcfg.features and self._train():
             return True
+        if self.wcfg.features and self._load_models():
+            return True
         return self._refine()
+
+    def _load_models(self) -> bool:
+        """Once the field first answers: the Grounder and its models (reasoner, text encoder), made
+        here rather than in the first query. One step; a failure is logged and left to that query."""
+        if self._models_loaded or self.field is None or self.field.stop is None:
+            return False
+        self._models_loaded = True
+        t = time.perf_counter()
+        with self.lock:
+            try:
+                self._ensure_grounder().load_models()
+                self.log.info("grounding models loaded ahead of the first query (%.2f s)", time.perf_counter() - t)
+            except Exception as exc:  # noqa: BLE001 - the first query says what is missing
+                self.log.warning("grounding models not loaded ahead: %s: %s", type(exc).__name__, exc)
+        return True
 
     def _supervise(self) -> bool:
         with self.lock:

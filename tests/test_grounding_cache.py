@@ -124,6 +124,8 @@ def test_growth_elsewhere_keeps_vocabulary_and_the_clusters_asked(own_map, synth
     clusters, vocab = dict(cached.cache.tables["clusters"]), dict(cached.cache.tables["vocabulary"])
     groups = dict(cached.cache.tables["groups"])
     assert clusters and vocab and groups
+    for gr in groups.values():   # a region's groups hold rows for its Gaussians only, none map-sized
+        assert gr.ids is not None and len(gr.labels) == len(gr.ids) == len(gr.features) < len(g)
     rev = m.field.revision
     grow(50, 9.0)
     same(cached.ground(names[0], mode="explicit"), plain.ground(names[0], mode="explicit"))

@@ -227,6 +227,27 @@ def test_nearest_is_exact_for_local_far_and_degenerate_queries():
     assert nearest(pts[:0], pts[:2], 3)[1].shape == (2, 0) and nearest(pts, pts[:0], 3)[0].shape == (0, 3)
 
 
+def test_within_matches_brute_force_for_tensors_arrays_and_edges():
+    """geometry.points.within: the points a ball holds, the same for a tensor and an array, for an
+    empty set, an empty ball and a centre far beyond float32's comfortable range."""
+    import torch
+
+    from rg_core.geometry.points import within
+
+    rng = np.random.default_rng(5)
+    pts = (rng.random((50000, 3)) * 4.0).astype(np.float32)
+    c = np.array([1.0, 2.0, 0.5])
+    want = np.nonzero(np.linalg.norm(pts.astype(np.float64) - c, axis=1) <= 0.7)[0]
+    got = within(torch.from_numpy(pts), c, 0.7)
+    assert 0 < len(want) < len(pts)
+    # Points within float32 rounding of the sphere may land either side; none further off.
+    assert len(np.setxor1d(got, want)) <= 2
+    np.testing.assert_array_equal(got, within(pts, c, 0.7))
+    assert np.all(np.diff(got) > 0)
+    assert within(pts[:0], c, 1.0).shape == (0,) and within(pts, c, 0.0).shape == (0,)
+    assert len(within(pts, [1e30, 0.0, 0.0], 1.0)) == 0 and len(within(pts, c, 1e30)) == len(pts)
+
+
 def test_connected_to_keeps_the_anchor_piece():
     from rg_core.geometry.points import map_spacing
     from rg_core.grounding.boxes import connected_to

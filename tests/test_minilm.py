@@ -36,3 +36,24 @@ def test_known_texts_skip_the_model():
         torch.testing.assert_close(new.norm(dim=-1), torch.ones(1))
     finally:
         minilm.KNOWN.pop("a stored name", None)
+
+
+def test_one_model_per_process_and_load_ahead():
+    """Every encoder of the packaged folder shares one loaded model; load() loads it before any text,
+    so a node's first query does not pay for it; the grounder loads its reasoner's and its own."""
+    from rg_core.grounding.pipeline import Grounder
+    from rg_core.perception.text_cache import inner_encoder
+
+    a, b = MiniLMText(), MiniLMText()
+    a.load()
+    assert a._model is not None and b._model is None
+    assert b.model is a.model and minilm.MiniLM.shared(minilm.model_folder()) is a.model
+    assert not any(p.is_meta for p in a.model.parameters())   # every weight came from the checkpoint
+
+    class Stub:   # the map and field are not used to load models
+        supervision = None
+
+    g = Grounder(Stub(), None, text_encoder=MiniLMText())
+    assert g.load_models() is g
+    assert inner_encoder(g.text_model())._model is a.model
+    assert inner_encoder(g.reasoner.text)._model is a.model

@@ -165,6 +165,24 @@ def test_perception_failure_keeps_mapping():
         assert w.stop(timeout=20)
 
 
+def test_models_load_once_the_field_answers():
+    """The worker's idle step loads the grounder's models once the field first answers (stop set),
+    not before and not twice; the first query then finds them loaded. Not started: steps by hand."""
+    from types import SimpleNamespace
+
+    from rg_core.perception.text_cache import inner_encoder
+
+    w = MapWorker(small_cfg(), WorkerConfig(queue_size=2, features=True))
+    assert not w._load_models()                           # no field yet
+    w.field = SimpleNamespace(stop=None)                  # training, not answering yet
+    assert not w._load_models() and w._grounder is None
+    w.field.stop = {"stopped": "converged"}
+    assert w._load_models() and not w._load_models()      # one step, once
+    g = w._grounder
+    assert g is not None and inner_encoder(g.text_model())._model is not None
+    assert inner_encoder(g.reasoner.text)._model is not None
+
+
 def test_reset_counts_the_frames_it_clears_as_dropped():
     w = MapWorker(small_cfg(), WorkerConfig(queue_size=4, features=False))   # not started: frames stay queued
     for i in range(3):

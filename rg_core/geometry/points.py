@@ -53,3 +53,14 @@ def nearest(points: np.ndarray, queries: np.ndarray, k: int, margin: float = 0.0
             todo = todo[~ok]
         margin *= 4.0
     return d, idx
+
+
+def within(points, centre, radius: float) -> np.ndarray:
+    """Sorted indices of the points [N, 3] (tensor or array) within `radius` of `centre` [3]: one
+    pass in float32, no [N, 3] difference kept (a million-Gaussian map: a few milliseconds)."""
+    import torch
+
+    p = torch.as_tensor(points, dtype=torch.float32)
+    c = torch.as_tensor(np.asarray(centre, np.float32).reshape(1, 3))
+    d = torch.cdist(p, c, compute_mode="donot_use_mm_for_euclid_dist")[:, 0]               # [N]
+    return torch.nonzero(d <= radius).reshape(-1).numpy()

@@ -6,6 +6,7 @@ and the FeatureField, so a node can keep mapping and training between queries.
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 import time
@@ -16,7 +17,7 @@ import torch
 from ..config import RGConfig
 from ..field.converge import describe
 from ..geometry.conventions import backproject, up_direction
-from ..geometry.points import map_spacing
+from ..geometry.points import map_spacing, within
 from ..render import rasterize
 from ..util import torch_threads
 from . import confidence, phrases, relations, stages
@@ -26,6 +27,7 @@ from .grouping import Groups, cluster_instances
 from .masks import leave_occluded, refine_visible, snap_to_image, surfaces_apart
 from .relevancy import CANONICAL, relevancy_pca
 from ..perception.query import parse_mode, query_problem
+from ..perception.text_cache import inner_encoder
 from .result import GroundingResult
 from .vocabulary import build_vocabulary, looks_like_name
 
@@ -93,12 +95,27 @@ class Grounder:
             self._reasoner = reasoner_from_config(self.cfg.reason)
         return self._reasoner
 
-    def encode(self, texts: list[str]) -> torch.Tensor:
-        """[n] strings -> [n, D] unit rows (cached: canonical phrases and names repeat)."""
+    def text_model(self):
+        """The text encoder queries are embedded with (the packaged MiniLM unless one was given)."""
         if self._text is None:
             from ..perception.embed import MiniLMText
 
             self._text = MiniLMText()
+        return self._text
+
+    def load_models(self) -> "Grounder":
+        """Load the reasoner's and the text encoder's models now rather than in the first query that
+        needs one (0.1-0.3 s): what a long-running node does at start. `rg ground`, a process per
+        query, skips it: a query whose texts the map stores needs no text model at all."""
+        self.reasoner.load()
+        load = getattr(inner_encoder(self.text_model()), "load", None)
+        if load is not None:
+            load()
+        return self
+
+    def encode(self, texts: list[str]) -> torch.Tensor:
+        """[n] strings -> [n, D] unit rows (cached: canonical phrases and names repeat)."""
+        self.text_model()
         todo = [t for t in dict.fromkeys(texts) if t not in self._text_cache]
         if todo:
             for t, e in zip(todo, self._text(todo)):
@@ -207,7 +224,7 @@ class Grounder:
     def groups(self, scale: float, region: np.ndarray | None = None) -> Groups:
         """Clusters of instance features at one scale, over the Gaussians in `region` (bool [N];
         None: all); cached until the map, the field or the region changes. Gaussians outside the
-        region are left out: label -1 and a zero feature, so they never join a group."""
+        region are left out (rows only for the region's Gaussians: Groups.ids), so they never join a group."""
         self._check_cache()
         N = len(self.mapper.gaussians)
         key = (round(scale, 4), N, None if region is None else np.packbits(region).tobytes())
@@ -228,11 +245,7 @@ class Grounder:
             digest = hashlib.blake2b(idx.astype(np.int64).tobytes(), digest_size=16).digest()
             sub = self.cache.get("clusters", (round(scale, 4), len(idx), digest),
                                  lambda: cluster(torch.from_numpy(idx)))
-            labels = np.full(N, -1, np.int64)
-            labels[idx] = sub.labels
-            full = torch.zeros(N, sub.features.shape[1], dtype=sub.features.dtype)
-            full[torch.from_numpy(idx)] = sub.features
-            return Groups(labels, sub.centres, sub.clustered, sub.seconds, sub.radius, full)
+            return dataclasses.replace(sub, ids=idx)
         return self.cache.get("groups", key, make)
 
     def region(self, kf, mask: np.ndarray, depth: torch.Tensor, alpha: torch.Tensor, scale: float) -> np.ndarray | None:
@@ -246,12 +259,12 @@ class Grounder:
         if int(sel.sum()) < 3:
             return None
         pts = backproject(depth.numpy(), np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64))
-        centre = torch.from_numpy(pts[sel.numpy()]).median(0).values.float()        # [3] world
-        d = (self.mapper.gaussians.means.detach() - centre).norm(dim=-1)
-        if g.region_scales > 0:
-            return (d <= g.region_scales * max(scale, 1e-3)).numpy()
-        near = (d <= g.cull_radius).numpy()
-        return near if g.min_cluster_size <= near.sum() < 0.9 * len(near) else None
+        centre = np.median(pts[sel.numpy()], 0)                                        # [3] world
+        means = self.mapper.gaussians.means.detach()
+        r = g.region_scales * max(scale, 1e-3) if g.region_scales > 0 else g.cull_radius
+        near = np.zeros(len(means), bool)
+        near[within(means, centre, r)] = True
+        return near if g.region_scales > 0 or g.min_cluster_size <= near.sum() < 0.9 * len(near) else None
 
     def spacing(self) -> float:
         """The map's median nearest-neighbour distance between Gaussians (m), cached until the map

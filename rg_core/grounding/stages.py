@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from ..geometry.conventions import pixels_to_points
-from ..geometry.points import nearest
+from ..geometry.points import nearest, within
 from .boxes import connected_to, group_boxes, robust_inliers
 from .carve import MaskView, mask_votes
 from .grouping import Groups
@@ -144,9 +144,7 @@ def candidate_groups(g, ref: Reference, pk: Peak, max_results: int) -> tuple[Gro
             found.append((ball, float(sim.max()) if len(sim) else 1.0))
             chosen = chosen[1:] if max_results > 1 else []
         elif not chosen and groups.features is not None and len(groups.features):
-            d = groups.features @ torch.nn.functional.normalize(pk.instance.float(), dim=-1)
-            near = torch.topk(d, min(2 * mcs, len(d))).indices.numpy()
-            found.append((np.sort(near), float(d[near].mean())))
+            found.append(groups.nearest(pk.instance, 2 * mcs))
     found += [(groups.members(gi, grow=g.gcfg.grow_groups), float(max(sim[gi], 0.0))) for gi in chosen]
     return groups, found
 
@@ -154,14 +152,13 @@ def candidate_groups(g, ref: Reference, pk: Peak, max_results: int) -> tuple[Gro
 def more_instances(g, groups: Groups, order: list[int], target, canon, scale, k: int) -> list[int]:
     """Other groups as relevant as the best one ("the cups"): relevancy of each group's mean latent."""
     lat = g.field.latents
-    labels = torch.from_numpy(groups.labels)
     scores = []
     for gi in order:
-        members = labels == gi
-        if not bool(members.any()):
+        members = groups.gaussians(np.nonzero(groups.labels == gi)[0])
+        if not len(members):
             scores.append(0.0)
             continue
-        z = g.field.language(lat[members].mean(0), scale)
+        z = g.field.language(lat[torch.from_numpy(members)].mean(0), scale)
         scores.append(float(relevancy(g._decompress(z), target, canon)))
     best = scores[0]
     chosen = [order[0]]
@@ -241,30 +238,31 @@ def objects(g, ref: Reference, pk: Peak, found: list[tuple[np.ndarray, float]], 
     set also takes what several see inside), cut to its piece in space (the first: the piece the
     reference mask sees most, else the one under the peak), outliers dropped (with `outlier_mads`), boxed."""
     gs = g.mapper.gaussians
-    means, colors = gs.means.detach().numpy(), (gs.colors.detach().clamp(0, 1) * 255).round().byte().numpy()
+    means = gs.means.detach().numpy()                                                      # [N, 3]
     kf = ref.keyframe
     link = g.gcfg.link_spacing * g.spacing()
     views = carve_views(g, ref)
     ref_view = keyframe_view(kf, ref.mask.numpy()) if g.gcfg.anchor_support else None
     border = g.vote_border() if views or ref_view is not None else 0
-    sizes = gs.scales.detach().max(1).values.numpy()                                       # [N]
+    def sizes(ids: np.ndarray) -> np.ndarray:  # [k] largest axis of some Gaussians (m)
+        return gs.log_scales.detach()[torch.from_numpy(ids)].max(1).values.exp().numpy()
+
     out = []
     for n, (ids, s_g) in enumerate(found[:max_results]):
         # Another instance ("the cups") is voted on by the masks of that instance: those near its members.
         seen_by = views if n == 0 else carve_views(g, ref, means[ids])
         if seen_by:   # votes only where they can matter: the set and, for the first, within 4 s* of the peak
-            near = (np.nonzero(np.linalg.norm(means - pk.anchor, axis=1) <= 4 * ref.scale)[0]
+            near = (within(gs.means.detach(), pk.anchor, 4 * ref.scale)
                     if n == 0 and pk.has_depth else np.zeros(0, np.int64))
             cand = np.unique(np.concatenate([ids, near]).astype(np.int64))
-            v = mask_votes(means[cand], seen_by, sizes[cand], border_px=border)
+            v = mask_votes(means[cand], seen_by, sizes(cand), border_px=border)
             ids = np.setdiff1d(ids, cand[v.carved(g.gcfg.min_mask_votes)])
             if n == 0:
                 ids = np.union1d(ids, cand[v.voted(g.gcfg.min_mask_votes)])
         if link > 0 and len(ids) > 1:
             support = against = None
             if n == 0 and ref_view is not None:
-                rv = mask_votes(means[ids], [ref_view], gs.scales.detach()[torch.from_numpy(ids)]
-                                .max(1).values.numpy(), border_px=border)
+                rv = mask_votes(means[ids], [ref_view], sizes(ids), border_px=border)
                 support, against = rv.inside > 0, rv.outside > 0
             ids = ids[connected_to(means[ids], pk.anchor if n == 0 and pk.has_depth else None, link, support, against)]
         if g.gcfg.outlier_mads > 0:
@@ -272,6 +270,7 @@ def objects(g, ref: Reference, pk: Peak, found: list[tuple[np.ndarray, float]], 
         if not len(ids):
             continue
         lo, hi, c, R, ext = group_boxes(means[ids])
-        out.append(GroundedObject(ids.astype(np.int64), means[ids].astype(np.float32), colors[ids], lo, hi, c, R,
+        colors = (gs.colors.detach()[torch.from_numpy(ids)].clamp(0, 1) * 255).round().byte().numpy()
+        out.append(GroundedObject(ids.astype(np.int64), means[ids].astype(np.float32), colors, lo, hi, c, R,
                                   ext, float(confidence) * pk.relevancy * s_g))
     return out

@@ -16,6 +16,7 @@ import torch
 from torch import nn
 
 MAX_SEQ_LENGTH = 256  # sentence_bert_config.json of the model: longer texts are truncated
+_LOADED: dict[str, "MiniLM"] = {}
 
 
 class _Layer(nn.Module):
@@ -55,17 +56,26 @@ class MiniLM(nn.Module):
         if cfg.get("hidden_act", "gelu") != "gelu" or cfg.get("position_embedding_type", "absolute") != "absolute":
             raise ValueError(f"{folder}: MiniLM supports BERT with gelu and absolute positions, got {cfg}")
         self.dim = d
-        self.word = nn.Embedding(int(cfg["vocab_size"]), d)
-        self.pos = nn.Embedding(int(cfg["max_position_embeddings"]), d)
-        self.segment = nn.Embedding(int(cfg["type_vocab_size"]), d)
-        self.ln = nn.LayerNorm(d, eps=eps)
-        self.layers = nn.ModuleList(_Layer(d, int(cfg["num_attention_heads"]), int(cfg["intermediate_size"]), eps)
-                                    for _ in range(int(cfg["num_hidden_layers"])))
-        self.load_state_dict(_rename(load_file(str(folder / "model.safetensors"))))
+        with torch.device("meta"):   # no random initialisation: every weight comes from the checkpoint
+            self.word = nn.Embedding(int(cfg["vocab_size"]), d)
+            self.pos = nn.Embedding(int(cfg["max_position_embeddings"]), d)
+            self.segment = nn.Embedding(int(cfg["type_vocab_size"]), d)
+            self.ln = nn.LayerNorm(d, eps=eps)
+            self.layers = nn.ModuleList(_Layer(d, int(cfg["num_attention_heads"]), int(cfg["intermediate_size"]),
+                                               eps) for _ in range(int(cfg["num_hidden_layers"])))
+        self.load_state_dict(_rename(load_file(str(folder / "model.safetensors"))), assign=True)
         self.eval()
         self.tok = Tokenizer.from_file(str(folder / "tokenizer.json"))
         self.tok.no_padding()
         self.tok.enable_truncation(min(MAX_SEQ_LENGTH, int(cfg["max_position_embeddings"])))
+
+    @classmethod
+    def shared(cls, folder: str | Path) -> "MiniLM":
+        """One model per folder and process: every encoder of it (the reasoner's, the grounder's) uses it."""
+        key = str(Path(folder).resolve())
+        if key not in _LOADED:
+            _LOADED[key] = cls(folder)
+        return _LOADED[key]
 
     @torch.inference_mode()
     def forward(self, texts: list[str], batch: int = 64) -> torch.Tensor:

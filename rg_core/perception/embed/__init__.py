@@ -99,8 +99,12 @@ class MiniLMText:
         if self._model is None:
             from ..minilm import MiniLM
 
-            self._model = MiniLM(self.folder)
+            self._model = MiniLM.shared(self.folder)
         return self._model
+
+    def load(self) -> None:
+        """Load the model now, not on the first unknown text."""
+        self.model  # noqa: B018 - the property loads it
 
     def __call__(self, texts: list[str]) -> torch.Tensor:
         from ..minilm import KNOWN, remember

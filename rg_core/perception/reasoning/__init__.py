@@ -103,6 +103,9 @@ class Reasoner:
                mode: str = "auto") -> Reasoning:
         raise NotImplementedError
 
+    def load(self) -> None:
+        """Load now what `reason` would load on first use (default: nothing)."""
+
 
 _SHARED_TEXT = None
 
@@ -185,6 +188,11 @@ class TextReasoner(Reasoner):
             self.prior = None
         self._bg_on = absent_margin is not None and absent_margin >= 0
         self._bg = None
+
+    def load(self) -> None:
+        load = getattr(inner_encoder(self.text), "load", None)
+        if load is not None:
+            load()
 
     @classmethod
     def from_config(cls, cfg) -> "TextReasoner":

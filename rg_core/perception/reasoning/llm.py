@@ -148,6 +148,9 @@ class LLMReasoner(Reasoner):
         self.min_name_similarity, self.max_tokens = min_name_similarity, max_tokens
         self.fallback = fallback or TextReasoner(max_query_chars=max_query_chars, **text_kwargs)
 
+    def load(self) -> None:
+        self.fallback.load()
+
     def complete(self, messages: list[dict], schema: dict, deadline: float) -> str:
         """The model's answer text, a JSON object meant to follow `schema`; raises AnswerError (or
         OSError/TimeoutError) when it has none."""
