@@ -157,6 +157,12 @@ def make_maps(map_path: Path, sizes: list[int], out: Path, tile: bool = False) -
     return paths
 
 
+def _describe_code(code: Path) -> str:
+    """A checkout as its commit (and whether it has changes), else its path."""
+    r = subprocess.run(["git", "-C", str(code), "describe", "--always", "--dirty"], capture_output=True, text=True)
+    return f"the code at {r.stdout.strip()} ({code})" if r.returncode == 0 else str(code)
+
+
 def _med(xs) -> float:
     """Median, NaN for none (--cold-repeats 0)."""
     xs = list(xs)
@@ -296,7 +302,7 @@ def main() -> int:
     new_code = ROOT
     base_code = Path(a.baseline_code).resolve() if a.baseline_code else ROOT
     res = {"date": time.strftime("%Y-%m-%d %H:%M"), "cpus": os.cpu_count(), "load_avg_start": os.getloadavg(),
-           "baseline": str(base_code) if a.baseline_code else "this code with cache=False",
+           "baseline": _describe_code(base_code) if a.baseline_code else "this code with cache=False",
            "queries": [q[:2] for q in queries], "warm": {}, "cold": {}, "tile": a.tile, "grow": a.grow}
     with tempfile.TemporaryDirectory() as tmp:
         maps = make_maps(Path(a.map), a.sizes, Path(tmp), a.tile)
