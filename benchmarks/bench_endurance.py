@@ -39,7 +39,7 @@ def to_rows(report: dict) -> tuple[list[dict], str]:
              "latency_p95_last_s": round(s["latency_p95_last_s"], 3), "crashed": str(s["crashed"]),
              "run_s": round(s["seconds"], 1),
              "faults": " ".join(f"{k} {v}" for k, v in (s.get("faults_injected") or {}).items()) or "none",
-             "frames_rejected_bad_input": s.get("input_errors"), "saves_ok": f"{s.get('saves_ok')}/{s.get('saves')}",
+             "frames_rejected_bad_input": s.get("bad_input"), "saves_ok": f"{s.get('saves_ok')}/{s.get('saves')}",
              "keyframes_min": s.get("keyframes_min_after_warmup"), "keyframes_end": s.get("keyframes"),
              **{k: "-" if s.get(k) is None else s[k] for k in ("revisits", "keyframes_replaced", "sync_mixed")}}]
     return rows, (f"{report['frames']} frames at {report['rate']:g} Hz from rg synth seed 5 (8 views 160x120, looped), "

@@ -185,6 +185,8 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
             samples.append({"t": time.monotonic() - t0, "rss_mb": _rss_mb(node.pid), **since,   # counts: after warm-up
                             **{k: st.get(k) for k in ("queue", "gaussians", "keyframes", "evicted", "keyframes_dropped", "keyframes_replaced", "revisits")},
                             "input_errors": sum((st.get("input_errors") or {}).values()),
+                            # frames refused for what they held (pose, images, TF), not dropped for want of time
+                            "bad_input": sum(v for k, v in (st.get("input_errors") or {}).items() if k != "queue_drop"),
                             "sync_dropped": st.get("sync_dropped"), "sync_mixed": st.get("sync_mixed"),
                             "tf_dropped": st.get("tf_dropped")})
             if int(st.get("received") or 0) != bar.n:
@@ -251,7 +253,7 @@ def summarise(samples: list[dict], calls: list[dict], crashed: bool) -> dict:
             "latency_p95_first_s": float(np.percentile(lat[:k], 95)) if lat else float("nan"),
             "latency_p95_last_s": float(np.percentile(lat[-k:], 95)) if lat else float("nan"),
             "crashed": crashed, "seconds": samples[-1]["t"] if samples else 0.0,
-            **{k: last.get(k) for k in ("input_errors", "sync_dropped", "sync_mixed", "tf_dropped", "rejected", "keyframes_dropped", "keyframes_replaced", "revisits")}}
+            **{k: last.get(k) for k in ("input_errors", "bad_input", "sync_dropped", "sync_mixed", "tf_dropped", "rejected", "keyframes_dropped", "keyframes_replaced", "revisits")}}
 
 
 def plot(result: dict, png: Path, title: str) -> Path:

@@ -46,7 +46,8 @@ def test_long_run_keeps_memory_flat_and_answers_every_call(tmp_path):
     assert s["faults_injected"] == {"bad_pose": 5, "tf_gap": 4, "burst": 4}, s   # 13 faults in 2,000 frames
     assert s["saves"] >= 3 and s["saves_ok"] == s["saves"], s
     assert s["keyframes_min_after_warmup"] >= min(s["keyframes_at_warmup"], 4) > 0, s     # nothing mapped is lost
-    assert all(s[k] is not None for k in ("input_errors", "sync_dropped", "tf_dropped", "keyframes_dropped")), s
+    assert all(s[k] is not None for k in ("input_errors", "bad_input", "sync_dropped", "tf_dropped", "keyframes_dropped")), s
+    assert s["bad_input"] <= s["input_errors"], s   # queue drops are counted as drops, not as bad input
     from rg_core.map.store import load_map
 
     assert len(load_map(tmp_path / "work" / "endurance_map.pt").keyframes) > 0
