@@ -11,6 +11,7 @@ import time
 import traceback
 from pathlib import Path
 
+from ..config import GroundConfig
 from . import sections_quality as q
 from . import sections_system as s
 from .budgets import SECTIONS, Budgets
@@ -103,6 +104,7 @@ def recommend(results: dict) -> list[str]:
                 r = min(lat["rows"], key=lambda r: r["gaussians"])
                 parts.append(f"no measured map size answers within {limit:g} s (smallest, {r['gaussians']} Gaussians: "
                              f"{r['max_s']:.2f} s): query on a faster machine or a smaller map")
+        default_points = GroundConfig().max_cluster_points
         cl = [g for g in (sav or {}).get("grounding", []) if g.get("turned off by") == "max_cluster_points=0"]
         if cl and not math.isnan(cl[0]["seconds off"]):
             c = cl[0]
@@ -110,10 +112,11 @@ def recommend(results: dict) -> list[str]:
                 parts.append(f"max_cluster_points=0 (cluster all: {c['seconds off']:.2f} s/query, "
                              f"{-c['explicit_amodal change']:+.1f} mIoU points)")
             else:
-                parts.append(f"max_cluster_points 4000 (default; clustering all costs {c['seconds off']:.2f} s/query, "
+                parts.append(f"max_cluster_points {default_points} (default; clustering all costs "
+                             f"{c['seconds off']:.2f} s/query, "
                              f"mIoU change {-c['explicit_amodal change']:+.1f} points)")
         else:
-            parts.append("max_cluster_points 4000 (default)")
+            parts.append(f"max_cluster_points {default_points} (default)")
         parts.append("explicit queries take the rule-based shortcut (mode auto)")
         parts.append(field_txt)
         out.append(f"**Answer within {limit:g} s:** " + "; ".join(parts) + ".")
