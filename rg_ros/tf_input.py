@@ -11,7 +11,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rg_core.geometry.tf_buffer import GapError, LoopError, PastExtrapolationError, TFError
 from rg_core.io.ros_input import add_tf_message, resolve_pose
 
-from .worker import Frame
+from .frame_queue import Frame
 
 
 def _final(exc: TFError) -> bool:

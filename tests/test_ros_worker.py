@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from rg_core.config import MapConfig, RGConfig
-from rg_ros.worker import Frame, FrameQueue, MapWorker, WorkerConfig
+from rg_ros.frame_queue import Frame, FrameQueue
+from rg_ros.worker import MapWorker, WorkerConfig
 
 W, H = 64, 48
 
