@@ -178,7 +178,7 @@ def main(argv=None) -> int:
     other = a.text_model not in ("", "minilm")
     fit_file, prior_file = (fit_paths(a.text_model, DATA) if is_named(a.text_model) else fit_paths("folder", out))
     if other:   # the package's prior belongs to MiniLM: this encoder's own, or none before a fit
-        import rg_core.perception.reasoning as reasoner_module
+        import rg_core.perception.reasoning.open_set as reasoner_module
 
         reasoner_module.DOMAIN_PRIOR_PATH = prior_file
     # Separate caches: neither reasoner sees the other's query embeddings (honest warm latency).
@@ -196,7 +196,7 @@ def main(argv=None) -> int:
                      "tune_queries": len(sp.tune), "held_queries": len(sp.held), "catalogue": len(sp.names)},
            "load_s": {"minilm": round(load_model, 2), "old": round(load_old, 2), "new": round(load_new, 2)}}
     if a.fit:
-        from rg_core.perception.reasoning import DOMAIN_PRIOR_PATH
+        from rg_core.perception.reasoning.open_set import DOMAIN_PRIOR_PATH
 
         prior, oof = fit_domain_prior(new.text, tune_all)
         DOMAIN_PRIOR_PATH.write_text(json.dumps(prior) + "\n", encoding="utf-8")

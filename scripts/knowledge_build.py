@@ -66,7 +66,7 @@ MAX_HYPERNYMS = 3
 def vocabulary_names(descriptions: Path = DESCRIPTIONS) -> dict[str, str]:
     """name -> category for every name a scene or the reasoner may offer."""
     from rg_core.grounding.vocabulary import HOUSEHOLD
-    from rg_core.perception.reasoning import COCO_NAMES
+    from rg_core.perception.reasoning.open_set import COCO_NAMES
     from rg_core.synth.catalogue import PYBULLET_OBJECTS, SHARED_OBJECTS
 
     names: dict[str, str] = {}

@@ -243,9 +243,9 @@ def test_vote_border_is_measured_from_the_map(grounder):
 def test_text_embeddings_kept_are_bounded(grounder, monkeypatch):
     """Hours of distinct queries: the Grounder keeps the newest TEXT_CACHE_SIZE text embeddings, and
     an evicted text embeds again to the same row."""
-    import rg_core.grounding.pipeline as pipeline
+    import rg_core.grounding.texts as texts
 
-    monkeypatch.setattr(pipeline, "TEXT_CACHE_SIZE", 8)
+    monkeypatch.setattr(texts, "TEXT_CACHE_SIZE", 8)
     first = grounder.encode(["query number 0"])
     for i in range(1, 30):
         assert grounder.encode([f"query number {i}", "query number 0"]).shape[0] == 2

@@ -13,7 +13,9 @@ from conftest import assert_load_errors
 from rg_core.eval.reasoning import load_descriptions, scene_vocabularies, split
 from rg_core.perception.knowledge import DEFAULT_PATH, KnowledgeError, load_knowledge
 from rg_core.perception.reasoning.scoring import combine
-from rg_core.perception.reasoning import TextReasoner, load_domain_prior, shared_text_model
+from rg_core.perception.reasoning import TextReasoner
+from rg_core.perception.reasoning.open_set import load_domain_prior
+from rg_core.perception.reasoning.text import shared_text_model
 from rg_core.perception.text_cache import embed_cached
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))   # build-time code
 from wordnet_db import WordNet, find_dir  # noqa: E402
@@ -214,7 +216,7 @@ def test_shipped_embeddings_are_what_the_code_would_compute(tmp_path):
     current texts and encoder: nothing is embedded or written to an empty cache folder, and the
     rows equal a fresh embedding of their texts."""
     from rg_core.perception.embed import make_embedder
-    from rg_core.perception.reasoning import NAME_TEMPLATE
+    from rg_core.perception.reasoning.text import NAME_TEMPLATE
 
     r = TextReasoner(cache_dir=str(tmp_path))
     names, ne, ge = r.background()

@@ -83,3 +83,25 @@ class MapCache:
             while len(t) > self.sizes[table]:
                 t.popitem(last=False)
         return value
+
+
+def map_scopes(mapper, field) -> dict[str, tuple[tuple, tuple]]:
+    """What each scope is made from now, for MapCache.check: {scope: (objects, counters)} of a map
+    and its field (None: no field)."""
+    m, f = mapper, field
+    g = m.gaussians
+    sset = m.supervision
+    sup = (len(m.keyframes), m.keyframes[-1].index if m.keyframes else -1, id(sset))
+    if sset is not None:
+        sup += (len(sset.by_keyframe), sum(len(s.embeddings) for s in sset.by_keyframe.values()),
+                getattr(sset.pca, "version", None), id(sset.pca.pca))
+    tensors = (g.means, g.log_scales, g.quats, g.opacity_logits)
+    rows: tuple = ()
+    if f is not None:
+        if len(f.latents) != len(g):
+            f.sync()  # latents follow Gaussians added or pruned since the last training step
+        tensors += (f.latents,)
+        rows = (id(f), f.revision, f.steps, f._pca[0] if getattr(f, "_pca", None) is not None else None,
+                id(f.scale_tf))
+    return {"map": (tensors, (len(g),) + sup + rows), "supervision": ((), sup),
+            "field": ((f,) if f is not None else (), rows)}

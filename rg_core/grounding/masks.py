@@ -7,7 +7,8 @@ the group is the object's own surface that the map has not covered: it joins (do
 "Grounding"). A mask pixel whose reading lies well in front of the group's surface, at a 3D point
 the rest of the map's Gaussians hold more than the group's, is an occluder the map renders too thin
 (`leave_occluded`). With the camera's colour image the mask's rim then follows the image's colour
-edges (`snap_to_image`)."""
+edges (`snap_to_image`). `result_masks` renders a result's masks in a camera and applies these.
+"""
 from __future__ import annotations
 
 import cv2
@@ -17,7 +18,58 @@ from scipy.ndimage import binary_dilation, binary_erosion
 
 from ..geometry.conventions import pixels_to_points
 from ..geometry.points import nearest
+from ..render import rasterize
 from ..render.projection import quat_to_rotmat
+
+
+@torch.no_grad()
+def result_masks(mapper, gcfg, result, K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int,
+                 depth: np.ndarray | None = None,
+                 image: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Grounder.mask_layers: a GroundingResult's groups in a camera of `mapper`'s map, `gcfg` its
+    GroundConfig: amodal (rendered alone), visible as rendered (the groups' share of the blending
+    weight above `visible_share`), and visible following the camera's `depth` and `image` (the
+    functions below; None without either), each bool [height, width]."""
+    g = mapper.gaussians
+    N = len(g)
+    empty = np.zeros((height, width), bool)
+    sensed = depth is not None or image is not None
+    ids = np.concatenate([o.gaussian_ids for o in result.objects]) if result.objects else np.zeros(0, np.int64)
+    if not len(ids) or not N:
+        return empty, empty.copy(), empty.copy() if sensed else None
+    if int(ids.max()) >= N:
+        raise ValueError(f"masks: the result names Gaussian {int(ids.max())} but the map now has {N}; ground again")
+    cam = mapper.camera(K, cam_to_world, width, height)
+    member = torch.zeros(N, 1)
+    member[torch.from_numpy(ids)] = 1.0
+    args = (g.means.detach(), g.scales.detach(), g.quats.detach(), g.opacities.detach())
+    aa = mapper.cfg.antialiased
+    full = rasterize(*args, member, cam, antialiased=aa)
+    alone = rasterize(*args, member, cam, subset=torch.from_numpy(ids), antialiased=aa)
+    a = gcfg.mask_alpha
+    share = full.channels[..., 0] / full.alpha.clamp(min=1e-6)
+    visible = ((full.alpha > a) & (share > gcfg.visible_share)).numpy()
+    amodal = (alone.alpha > a).numpy()
+    if not sensed:
+        return amodal, visible, None
+    out = visible.copy()
+    apart = None
+    if depth is not None and gcfg.visible_depth_tol > 0:
+        others = torch.ones(N, dtype=torch.bool)
+        others[torch.from_numpy(ids)] = False
+        rest = rasterize(*args, member, cam, subset=others, antialiased=aa)
+        out = refine_visible(visible, alone.alpha.numpy(), alone.depth.numpy(), rest.alpha.numpy(),
+                             rest.depth.numpy(), depth, gcfg.visible_depth_tol)
+        apart = surfaces_apart(alone.alpha.numpy(), alone.depth.numpy(), rest.alpha.numpy(), rest.depth.numpy(),
+                               gcfg.visible_depth_tol)
+    if depth is not None and (gcfg.visible_front_tol > 0 or apart is not None):
+        out = leave_occluded(out, depth, alone.alpha.numpy(), alone.depth.numpy(), K, cam_to_world, args,
+                             member[:, 0].numpy() > 0, gcfg.visible_front_tol or np.inf,
+                             rim_ratio=gcfg.visible_rim_ratio if apart is not None else 0.0,
+                             rim_where=apart)
+    if image is not None and gcfg.visible_edge_eps > 0:
+        out = snap_to_image(out, image, eps=gcfg.visible_edge_eps)
+    return amodal, visible, out
 
 
 def refine_visible(visible: np.ndarray, group_alpha: np.ndarray, group_depth: np.ndarray, rest_alpha: np.ndarray,

@@ -24,7 +24,8 @@ from ...config import MAX_QUERY_CHARS
 from .explicit import explicit_match, normalise
 from .gguf import llm_install_command, packaged_gguf
 from ..base import BackendError
-from . import NAME_TEMPLATE, Reasoner, Reasoning, TextReasoner, validate
+from . import Reasoner, Reasoning, validate
+from .text import NAME_TEMPLATE, TextReasoner
 
 log = logging.getLogger(__name__)
 SYSTEM_PROMPT = (
