@@ -378,7 +378,7 @@ def test_rg_ground_view_masks_follow_the_keyframes_depth(tmp_path):
     import argparse
     import json
 
-    from rg_core.cli import _camera_from_args
+    from rg_core.cli.grounding import _camera_from_args
     from rg_core.grounding.result import GroundedObject, GroundingResult
     from rg_core.map.mapper import Keyframe, Mapper
 

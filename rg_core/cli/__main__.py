@@ -1,0 +1,6 @@
+"""`python -m rg_core.cli`: the `rg` command."""
+import sys
+
+from . import main
+
+sys.exit(main())

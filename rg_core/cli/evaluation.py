@@ -1,0 +1,74 @@
+"""`rg eval`: a scene's queries on its test views (mIoU, localization, box IoU, confidence, timings)."""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+from .config_args import add_alias, add_sections, was_given
+from .options import add_common, positive
+
+
+def cmd_eval(args, cfg) -> dict:
+    from ..eval.grounding import evaluate_queries
+    from ..grounding.build import build_grounder
+    from ..io.captures import read_scene
+    from ..map.store import load_map
+
+    from ..models import ModelMissingError, apply_reasoner
+
+    if not was_given(args, "reason.backend"):   # a backend named on the command line, not the preset's LVLM
+        try:
+            apply_reasoner(cfg.models.preset, cfg)
+        except ModelMissingError as exc:
+            print(f"rg eval: {exc}; implicit queries use reason.backend {cfg.reason.backend!r}", file=sys.stderr)
+    scene = read_scene(args.scene)
+    if args.queries:  # anyone's own explicit and implicit queries, in the scene's queries.json format
+        from ..io.queries import read_queries
+
+        scene.queries = read_queries(args.queries, scene.objects)
+    if not scene.queries or not scene.objects:
+        raise ValueError(f"{args.scene}: rg eval needs ground-truth objects and queries (a ReasoningGD scene with "
+                         "objects.json and queries.json, or a BOP scene; --queries FILE gives queries)")
+    mapper = load_map(args.map) if args.map else None
+    if mapper is not None and args.supervision == "oracle":
+        mapper.field = None  # a map's own field was trained on its own supervision
+    t = time.perf_counter()
+    grounder, report = build_grounder(scene, cfg, args.supervision, args.field_seconds, mapper, progress=not args.quiet)
+    report["seconds_build"] = round(time.perf_counter() - t, 3)
+    report["eval"] = evaluate_queries(grounder, scene, args.implicit, progress=not args.quiet, ablation=args.ablation)
+    if scene.kind == "bop":  # how much of each amodal mask no training view saw (one viewpoint hides parts)
+        from ..eval.amodal_coverage import amodal_coverage
+
+        report["eval"]["amodal_unseen"] = amodal_coverage(scene)
+    report["supervision_kind"] = args.supervision
+    if args.out:
+        from ..grounding.confidence import load_model, threshold
+        from ..report.plots import calibration_png
+
+        thr = threshold(load_model(cfg.models.preset, args.supervision), cfg.ground.min_confidence)
+        report["plots"] = [calibration_png(report["eval"]["queries"], Path(args.out) / "risk_coverage.png", thr,
+                                           f"{Path(args.scene).name}, {args.supervision} supervision")]
+    return report
+
+
+def add_eval(sub) -> None:
+    p = sub.add_parser("eval", help="run queries.json on the test views: mIoU, localization, box IoU, timings")
+    p.add_argument("scene", help="ReasoningGD or BOP scene folder (BOP: scene_camera.json + scene_gt.json)")
+    p.add_argument("--map", help="map file (default: build one from the scene)")
+    p.add_argument("--queries", help="queries.json-format file [{object_id, explicit, implicit: [...]}] "
+                                     "(default: the scene's queries.json; BOP: object names + the description set)")
+    p.add_argument("--supervision", default="default", choices=("default", "oracle"))
+    budget = p.add_mutually_exclusive_group()
+    # A fixed budget without the stop test: not field.seconds, the stop test's ceiling.
+    budget.add_argument("--field-seconds", type=float, help="feature-training budget (default: config field.seconds)")
+    add_alias(budget, "--field-steps", keys="field.steps", type=positive, metavar="N",
+              help="train the field exactly N steps instead (default: config field.steps; 0 there = seconds)")
+    p.add_argument("--implicit", type=int, default=1, help="implicit queries per object (default 1)")
+    p.add_argument("--ablation", action="store_true", help="relevancy only / + reasoning / + grouping table")
+    add_alias(p, "--preset", keys="models.preset",
+              help="models of the default supervision: offline, paper, paper_cpu (default: config)")
+    p.add_argument("--out", help="folder for PNGs: risk against coverage and reliability of the confidence")
+    add_common(p)
+    add_sections(p, ("map", "field", "ground", "reason", "models"))
+    p.set_defaults(func=cmd_eval)

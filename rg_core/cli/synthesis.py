@@ -1,0 +1,40 @@
+"""`rg synth`: a synthetic table-top or room scene in the ReasoningGD layout."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from .config_args import add_alias, add_sections
+from .options import add_common, positive, size
+
+
+def cmd_synth(args, cfg) -> dict:
+    from ..io.images import SceneError
+    from ..synth.generator import default_objects_dir, generate_scene
+
+    objects_dir = Path(args.objects_dir) if args.objects_dir else default_objects_dir()
+    if args.objects_dir and not objects_dir.is_dir():
+        raise SceneError(f"{objects_dir}: --objects-dir does not exist")
+    t0 = time.perf_counter()
+    summary = generate_scene(args.out, cfg.synth, objects_dir, progress=not args.quiet)
+    summary["seconds"] = round(time.perf_counter() - t0, 3)
+    return summary
+
+
+def add_synth(sub) -> None:
+    p = sub.add_parser("synth", help="generate a synthetic table-top or room scene (ReasoningGD layout)")
+    p.add_argument("out", help="output scene folder")
+    add_alias(p, "--views", keys="synth.views", type=positive)
+    add_alias(p, "--size", keys=("synth.width", "synth.height"), type=size, help="WxH, e.g. 320x240")
+    add_alias(p, "--seed", keys="synth.seed", type=int)
+    add_alias(p, "--objects", keys="synth.objects", type=positive, help="number of objects on the table")
+    add_alias(p, "--same-category", keys="synth.same_category", type=int,
+              help="how many of them share a category with another (several cups)")
+    add_alias(p, "--layout", keys="synth.layout", choices=("table", "room"),
+              help="one table, or a room of --tables tables and a walk")
+    add_alias(p, "--tables", keys="synth.tables", type=positive, help="tables of the room layout (default 4)")
+    p.add_argument("--objects-dir", help="folder of <name>/model.urdf meshes (default: ../shared/data/objects)")
+    add_alias(p, "--workers", keys="synth.workers", type=positive, help="render processes")
+    add_common(p)
+    add_sections(p, ("synth",))
+    p.set_defaults(func=cmd_synth)
