@@ -380,7 +380,8 @@ def test_rg_ground_view_masks_follow_the_keyframes_depth(tmp_path):
 
     from rg_core.cli.grounding import _camera_from_args
     from rg_core.grounding.result import GroundedObject, GroundingResult
-    from rg_core.map.mapper import Keyframe, Mapper
+    from rg_core.map.keyframes import Keyframe
+    from rg_core.map.mapper import Mapper
 
     mapper = Mapper()
     mapper.gaussians.append(torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([0.05]), torch.ones(1, 3), opacity=0.99)

@@ -11,7 +11,8 @@ from rg_core.eval.mapping import evaluate_views
 from rg_core.geometry.conventions import in_image, project
 from rg_core.geometry.rotations import pose_distances
 from rg_core.map.frames import FrameError
-from rg_core.map.mapper import Keyframe, Mapper
+from rg_core.map.keyframes import Keyframe
+from rg_core.map.mapper import Mapper
 from rg_core.map.run import stream_frames
 from rg_core.map.store import MapFileError, load_map, save_map
 from rg_core.perception.supervision import KeyframeSupervision, SupervisionSet

@@ -9,9 +9,12 @@ accuracy gained less than `converge_tol` over the last `converge_window` steps: 
 flatten where grounding stops changing, while the loss keeps falling slowly for hundreds of steps
 (docs/field.md). Steps are counted, not seconds, so the same seed stops at the same step on any CPU.
 New supervision (views, PCA basis) changes the evaluation set and restarts the test.
+`train_until` is the training loop (FeatureField.train): budgets, the stop test, interruptions.
 """
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -140,6 +143,53 @@ def _check(field) -> dict | None:
                        "heldout": {k: round(v, 4) for k, v in sc.items()},
                        "rule": f"held-out accuracy gain < {100 * c.converge_tol:g} points over {c.converge_window} steps"}
     return st.decision
+
+
+def train_until(field, seconds: float | None = None, iters: int | None = None, progress: bool = False,
+                converge: bool | None = None, final: bool = True, until: Callable[[], bool] | None = None) -> dict:
+    """FeatureField.train: train until `seconds` or `iters` runs out or, with the stop test on, the
+    held-out accuracy converged. No budget given: cfg.steps steps if > 0, else up to cfg.seconds with
+    the stop test (cfg.converge_tol > 0). An explicit budget is fixed unless `converge` is True.
+    `until()` true before a step ends the call there ("interrupted": the node's service calls
+    wait for one step, not a slice). Returns steps, seconds, mean losses, the budget and the stop
+    decision (or why nothing ran). The decision is kept as `field.stop` (the field answers from then
+    on) when converged or when the budget was `final`; a slice of a longer budget (the node's)
+    passes final=False."""
+    import sys
+
+    from tqdm import tqdm
+
+    if seconds is None and iters is None:
+        iters, seconds = (field.cfg.steps, None) if field.cfg.steps > 0 else (None, field.cfg.seconds)
+        converge = converge if converge is not None else field.cfg.steps == 0
+    converge = bool(converge) and field.cfg.converge_tol > 0
+    budget = {k: v for k, v in (("steps", iters), ("seconds", seconds)) if v is not None}
+    t0, stop = time.perf_counter(), None
+    hist, bar = [], tqdm(total=iters, desc="field", unit="it", disable=not progress, file=sys.stderr)
+    while (iters is None or len(hist) < iters) and (seconds is None or time.perf_counter() - t0 < seconds):
+        if converge and (stop := check(field)) is not None:
+            break
+        if until is not None and until():
+            stop = {"stopped": "interrupted", "steps": field.steps, "seconds": round(field.seconds, 3)}
+            break
+        r = field.train_step()
+        if "skipped" in r:
+            bar.close()
+            return {"steps": len(hist), "seconds": time.perf_counter() - t0, "skipped": r["skipped"],
+                    "budget": budget}
+        hist.append(r)
+        bar.update(1)
+        bar.set_postfix(loss=f"{r['loss']:.4f}")
+    bar.close()
+    if stop is None:
+        stop = {"stopped": "steps" if iters is not None and len(hist) >= iters else "seconds",
+                "steps": field.steps, "seconds": round(field.seconds, 3)}
+    if (final and stop["stopped"] != "interrupted") or stop["stopped"] == "converged":
+        field.stop = stop
+    mean = lambda k: float(np.mean([h[k] for h in hist])) if hist else float("nan")
+    return {"steps": len(hist), "seconds": time.perf_counter() - t0, "loss": mean("loss"),
+            "language": mean("language"), "instance": mean("instance"), "budget": budget, "stop": stop,
+            **({"curve": [list(h) for h in field.convergence.history]} if converge and field.convergence else {})}
 
 
 def describe(decision: dict | None, steps_now: int | None = None) -> str:

@@ -21,9 +21,10 @@ from ..config import FieldConfig
 from ..geometry.conventions import scale_intrinsics
 from ..geometry.points import nearest
 from ..render import frustum_cull, rasterize
-from .converge import check, holdout_pixels
+from .converge import train_until
 from .losses import instance_loss, language_loss, language_targets, shares_group
 from .mappers import ScaleMLP, sparse_adam_step
+from .sampling import sample_keyframe, sample_scale, training_view
 from .scale import QuantileScale
 
 _MOVED = 1e-3  # m: on re-association after pruning, a Gaussian this close to an old one is that one
@@ -192,8 +193,8 @@ class FeatureField:
         self._pca = (ipca.version, pca.mean.clone(), pca.components.clone())
 
     def _train_view(self, kf):
-        """K, size, masks [M, th*tw], scales [M], ray weights [th*tw] and held-out pixels [th*tw]
-        (training never draws them: converge.py measures the stop test there) of a keyframe, cached."""
+        """K, size, masks [M, th*tw], scales [M], ray weights [th*tw] and held-out pixels [th*tw] of a
+        keyframe at the training width (sampling.training_view), cached per keyframe and supervision."""
         sup = self.mapper.supervision.by_keyframe[kf.index]
         w, h = kf.size
         tw = min(self.cfg.train_width, w)
@@ -201,39 +202,8 @@ class FeatureField:
         K = scale_intrinsics(kf.K, tw / w, th / h)
         hit = self._masks.get(kf.index)
         if hit is None or hit[0] != id(sup):
-            masks = torch.from_numpy(np.asarray(sup.masks, bool))
-            if masks.shape[1:] != (h, w):
-                raise ValueError(f"field: keyframe {kf.index} masks are {list(masks.shape[1:])}, image is {[h, w]}")
-            rows = ((torch.arange(th) + 0.5) * h / th).long().clamp(max=h - 1)  # nearest resampling
-            cols = ((torch.arange(tw) + 0.5) * w / tw).long().clamp(max=w - 1)
-            masks = masks[:, rows][:, :, cols].reshape(len(masks), th * tw)
-            scales = torch.from_numpy(np.asarray(sup.scales, np.float32))
-            # Ray weights: mask_ray_fraction spread equally over the masks (each uniformly over
-            # its pixels), the rest uniform over the image; drawn without replacement.
-            a = min(max(self.cfg.mask_ray_fraction, 0.0), 1.0) if len(masks) else 0.0
-            mf = masks.float()
-            weights = (1 - a) / (th * tw) + a * (mf / mf.sum(1, keepdim=True).clamp(min=1)).sum(0) / max(len(masks), 1)
-            held = holdout_pixels(th * tw, self.cfg.holdout, self.cfg.seed, kf.index)
-            hit = (id(sup), masks, scales, weights, held)
-            self._masks[kf.index] = hit
+            hit = self._masks[kf.index] = (id(sup), *training_view(sup, kf.index, w, h, tw, th, self.cfg))
         return K, tw, th, *hit[1:]
-
-    def _sample_keyframe(self, kfs: list):
-        c = self.cfg
-        n = len(kfs)
-        if n > c.window and float(torch.rand(1, generator=self._rng)) < c.revisit:
-            return kfs[int(torch.randint(0, n - c.window, (1,), generator=self._rng))]
-        lo = max(0, n - c.window)
-        return kfs[int(torch.randint(lo, n, (1,), generator=self._rng))]
-
-    def _sample_scale(self, scales: torch.Tensor) -> float:
-        """GARField's interval sampling: a mask scale of the view, moved up towards the next one."""
-        u = torch.unique(scales[torch.isfinite(scales)]).double()
-        if len(u) == 0:
-            return 0.0
-        j = int(torch.randint(0, len(u), (1,), generator=self._rng))
-        hi = u[j + 1] if j + 1 < len(u) else u[j] * 1.5
-        return float(u[j] + float(torch.rand(1, generator=self._rng)) * (hi - u[j]))
 
     # ---------------------------------------------------------------------------- training
 
@@ -246,7 +216,7 @@ class FeatureField:
             if why is not None:
                 return {"skipped": why}
             c = self.cfg
-            kf = self._sample_keyframe(self._supervised())
+            kf = sample_keyframe(self._supervised(), c.window, c.revisit, self._rng)
             K, tw, th, masks, scales, weights, held = self._train_view(kf)
             weights = torch.where(held, torch.zeros(()), weights)
             targets = self.mapper.supervision.compressed(kf.index)  # [M, 64] in the current basis
@@ -260,7 +230,7 @@ class FeatureField:
             own = torch.unique(scales)
             if len(own) > 16:
                 own = own[torch.randperm(len(own), generator=self._rng)[:16]]
-            sampled = [self._sample_scale(scales) for _ in range(c.scales_per_step)]
+            sampled = [sample_scale(scales, self._rng) for _ in range(c.scales_per_step)]
             f, l_lang, l_in = self._view_loss(out.channels.reshape(-1, c.latent_dim), pix, masks, scales,
                                               targets, own, sampled)
             loss = c.lambda_language * l_lang + c.lambda_instance * l_in
@@ -306,48 +276,9 @@ class FeatureField:
     def train(self, seconds: float | None = None, iters: int | None = None, progress: bool = False,
               converge: bool | None = None, final: bool = True, until: Callable[[], bool] | None = None) -> dict:
         """Train until `seconds` or `iters` runs out or, with the stop test on, the held-out accuracy
-        converged (converge.py). No budget given: cfg.steps steps if > 0, else up to cfg.seconds with
-        the stop test (cfg.converge_tol > 0). An explicit budget is fixed unless `converge` is True.
-        `until()` true before a step ends the call there ("interrupted": the node's service calls
-        wait for one step, not a slice). Returns steps, seconds, mean losses, the budget and the stop
-        decision (or why nothing ran). The decision is kept as `stop` (the field answers from then
-        on) when converged or when the budget was `final`; a slice of a longer budget (the node's)
-        passes final=False."""
-        import sys
-
-        from tqdm import tqdm
-
-        if seconds is None and iters is None:
-            iters, seconds = (self.cfg.steps, None) if self.cfg.steps > 0 else (None, self.cfg.seconds)
-            converge = converge if converge is not None else self.cfg.steps == 0
-        converge = bool(converge) and self.cfg.converge_tol > 0
-        budget = {k: v for k, v in (("steps", iters), ("seconds", seconds)) if v is not None}
-        t0, stop = time.perf_counter(), None
-        hist, bar = [], tqdm(total=iters, desc="field", unit="it", disable=not progress, file=sys.stderr)
-        while (iters is None or len(hist) < iters) and (seconds is None or time.perf_counter() - t0 < seconds):
-            if converge and (stop := check(self)) is not None:
-                break
-            if until is not None and until():
-                stop = {"stopped": "interrupted", "steps": self.steps, "seconds": round(self.seconds, 3)}
-                break
-            r = self.train_step()
-            if "skipped" in r:
-                bar.close()
-                return {"steps": len(hist), "seconds": time.perf_counter() - t0, "skipped": r["skipped"],
-                        "budget": budget}
-            hist.append(r)
-            bar.update(1)
-            bar.set_postfix(loss=f"{r['loss']:.4f}")
-        bar.close()
-        if stop is None:
-            stop = {"stopped": "steps" if iters is not None and len(hist) >= iters else "seconds",
-                    "steps": self.steps, "seconds": round(self.seconds, 3)}
-        if (final and stop["stopped"] != "interrupted") or stop["stopped"] == "converged":
-            self.stop = stop
-        mean = lambda k: float(np.mean([h[k] for h in hist])) if hist else float("nan")
-        return {"steps": len(hist), "seconds": time.perf_counter() - t0, "loss": mean("loss"),
-                "language": mean("language"), "instance": mean("instance"), "budget": budget, "stop": stop,
-                **({"curve": [list(h) for h in self.convergence.history]} if converge and self.convergence else {})}
+        converged; `until()` interrupts between steps (converge.train_until says how budgets, the
+        stop test and `final` combine). Returns steps, seconds, mean losses, the budget and the stop."""
+        return train_until(self, seconds, iters, progress, converge, final, until)
 
     # ---------------------------------------------------------------------------- queries
 

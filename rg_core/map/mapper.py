@@ -12,50 +12,18 @@ import logging
 import time
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 import torch
 
 from ..config import MapConfig
-from ..geometry.conventions import in_image, project, scale_intrinsics
-from ..geometry.rotations import pose_distances
 from ..render import EPS2D, Camera, RenderOutput, rasterize
-from .frames import PreparedFrame, downscale_depth, prepare_frame
-from .gaussians import PARAMS, GaussianModel, ResizableAdam
-from .seeding import local_range, seed_pixels
+from .frames import PreparedFrame, prepare_frame
+from .gaussians import GaussianModel, ResizableAdam
+from .keyframes import Keyframe, keyframe_reason, most_redundant, same_view
+from .removal import eviction_order, protected_box, prune_keep
+from .seeding import back_project, coarse_gaussians, detail_pixels, local_range, seed_candidates
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class Keyframe:
-    """What the map keeps of a keyframe (working resolution); later stages add masks."""
-
-    index: int                 # position in the input stream
-    stamp: float
-    cam_to_world: np.ndarray   # [4, 4] OpenCV axes
-    K: np.ndarray              # [3, 3] at the working resolution
-    rgb: torch.Tensor          # [h, w, 3] float32 in [0, 1]
-    depth: torch.Tensor        # [h, w] float32 metres, 0 = invalid
-    _scaled: dict = field(default_factory=dict, repr=False, compare=False)  # at_scale's cache
-
-    @property
-    def size(self) -> tuple[int, int]:
-        return self.rgb.shape[1], self.rgb.shape[0]
-
-    def at_scale(self, scale: float) -> "Keyframe":
-        """This keyframe with its images resized by `scale` (cached; 1: itself): colour averaged over
-        the area, depth with downscale_depth (blocks across an edge invalid), K rescaled."""
-        if scale >= 1.0:
-            return self
-        if scale not in self._scaled:
-            w, h = self.size
-            sw, sh = max(1, round(w * scale)), max(1, round(h * scale))
-            rgb = cv2.resize(self.rgb.numpy(), (sw, sh), interpolation=cv2.INTER_AREA)
-            depth = downscale_depth(self.depth.numpy(), sw, sh)
-            self._scaled[scale] = Keyframe(self.index, self.stamp, self.cam_to_world, scale_intrinsics(self.K, sw / w, sh / h),
-                                           torch.from_numpy(rgb), torch.from_numpy(depth))
-        return self._scaled[scale]
 
 
 @dataclass
@@ -72,19 +40,6 @@ class FrameResult:
     replaced: int | None = None  # index of the keyframe this one replaced (same view: MapConfig.kf_revisit)
     revisit: int | None = None   # the unchanged keyframe this frame revisited (seeded, not a keyframe)
     seconds: dict = field(default_factory=dict)
-
-
-def _changed_fraction(kf: "Keyframe", rgb: torch.Tensor, depth: torch.Tensor, colour_tol: float = 0.1,
-                      depth_tol: float = 0.03) -> float:
-    """How much of a view differs from keyframe `kf`'s images (same working size; else 1): the share
-    of pixels whose colour moved by more than colour_tol in a channel, whose depth moved by more
-    than max(depth_tol, depth_tol x depth) or that are valid in one and not the other."""
-    if tuple(kf.rgb.shape) != tuple(rgb.shape):
-        return 1.0
-    a, b = kf.depth > 0, depth > 0
-    dz = (kf.depth - depth).abs() > torch.clamp(depth_tol * depth, min=depth_tol)
-    changed = ((kf.rgb - rgb).abs().amax(-1) > colour_tol) | (a != b) | (a & b & dz)
-    return float(changed.float().mean())
 
 
 class Mapper:
@@ -154,41 +109,29 @@ class Mapper:
         frac = float(unexplained.sum()) / max(int(valid.sum()), 1)
         t2 = time.perf_counter()
         self.seconds["check"] += t2 - t1
-        res = FrameResult(False, "", unexplained=frac, photometric_error=photo)
-        near_static = False
-        if not self.keyframes:
-            res.reason = "first frame"
-        elif frac > self.cfg.kf_new_fraction:
-            res.reason = f"{100 * frac:.1f}% of the view is not in the map"
-        elif photo > self.cfg.kf_photo_error:
-            res.reason = f"map renders this view with colour error {photo:.3f}"
-        elif near_static := (len(self.keyframes) < self.cfg.kf_min_count
-                             and fr.stamp - self.keyframes[-1].stamp >= self.cfg.kf_min_interval):
-            res.reason = (f"{len(self.keyframes)} keyframe(s) < kf_min_count {self.cfg.kf_min_count}: a keyframe every "
-                          f"{self.cfg.kf_min_interval:g} s until then (a near-static camera)")
-        else:
-            res.reason = f"already mapped ({100 * (1 - frac):.1f}% explained, colour error {photo:.3f})"
+        reason, is_keyframe, near_static = keyframe_reason(self.keyframes, self.cfg, fr.stamp, frac, photo)
+        res = FrameResult(is_keyframe, reason, unexplained=frac, photometric_error=photo)
+        if not is_keyframe:
             res.seconds = {"prepare": t1 - t0, "check": t2 - t1}
             return res
-        res.keyframe = True
         kf = Keyframe(index, fr.stamp, fr.cam_to_world, fr.K, rgb_t, depth_t)
+        near = None
         if self.keyframes and self.cfg.kf_revisit > 0 and not near_static:
-            d = pose_distances(np.stack([k.cam_to_world for k in self.keyframes]), fr.cam_to_world)   # [N]
-            j = int(np.argmin(d))
-            if d[j] <= self.cfg.kf_revisit:
-                old = self.keyframes[j]
-                changed = _changed_fraction(old, rgb_t, depth_t)
-                if changed <= self.cfg.kf_new_fraction:   # the same view, unchanged: only the map lacks it
-                    res.keyframe, res.revisit = False, old.index   # seeded and optimised below, not added
-                    self.totals["revisits"] += 1
-                    res.reason += (f"; a revisit of keyframe {old.index} ({d[j]:.3f} m-equivalent, "
-                                   f"{100 * changed:.1f}% changed): its unexplained pixels seeded, no new keyframe")
-                else:
-                    self._remove_keyframe(j)
-                    res.replaced = old.index
-                    self.totals["keyframes_replaced"] += 1
-                    res.reason += (f"; replaces keyframe {old.index} at the same view ({d[j]:.3f} m-equivalent, "
-                                   f"{100 * changed:.1f}% changed)")
+            near = same_view(self.keyframes, kf, self.cfg.kf_revisit)
+        if near is not None:
+            j, d, changed = near
+            old = self.keyframes[j]
+            if changed <= self.cfg.kf_new_fraction:   # the same view, unchanged: only the map lacks it
+                res.keyframe, res.revisit = False, old.index   # seeded and optimised below, not added
+                self.totals["revisits"] += 1
+                res.reason += (f"; a revisit of keyframe {old.index} ({d:.3f} m-equivalent, "
+                               f"{100 * changed:.1f}% changed): its unexplained pixels seeded, no new keyframe")
+            else:
+                self._remove_keyframe(j)
+                res.replaced = old.index
+                self.totals["keyframes_replaced"] += 1
+                res.reason += (f"; replaces keyframe {old.index} at the same view ({d:.3f} m-equivalent, "
+                               f"{100 * changed:.1f}% changed)")
         if res.keyframe:
             while self.cfg.max_keyframes and len(self.keyframes) >= self.cfg.max_keyframes:
                 if self.drop_redundant_keyframe() is None:     # room first: the count never passes the budget
@@ -230,21 +173,14 @@ class Mapper:
 
     def _seed(self, fr: PreparedFrame, unexplained: torch.Tensor, depth: torch.Tensor | None = None,
               stride: int | None = None) -> tuple[int, int]:
-        """Back-project unexplained depth pixels (one per stride x stride block) as new Gaussians;
-        `depth` [h, w] (default the frame's sensor depth) places them. With the default stride and
-        `seed_spacing`, surfaces so far that a block spans more than it are seeded at half the stride."""
+        """Back-project unexplained depth pixels (one per stride x stride block, seeding.seed_candidates)
+        as new Gaussians; `depth` [h, w] (default the frame's sensor depth) places them. With the default
+        stride and `seed_spacing`, surfaces so far that a block spans more than it are seeded at half
+        the stride. At max_gaussians, eviction makes room, else a random share is dropped."""
         c = self.cfg
-        s = stride or c.seed_stride
         depth = torch.from_numpy(fr.depth) if depth is None else depth              # [h, w] metres
-        if stride is None and c.seed_spacing > 0 and s > 1:
-            far = depth * (s / float(fr.K[0, 0])) > c.seed_spacing                    # [h, w]: a block spans more
-            regions = [(unexplained & far, s // 2), (unexplained & ~far, s)]
-        else:
-            regions = [(unexplained, s)]
-        picked = [(*seed_pixels(m, st), st) for m, st in regions]                      # (rows, cols, stride)
-        vs = torch.cat([p[0] for p in picked])
-        us = torch.cat([p[1] for p in picked])
-        strides = torch.cat([torch.full((len(p[0]),), float(p[2]), dtype=torch.float64) for p in picked])
+        vs, us, strides = seed_candidates(unexplained, depth, float(fr.K[0, 0]), stride or c.seed_stride,
+                                          c.seed_spacing if stride is None else 0.0)
         n_cand = len(vs)
         room = max(c.max_gaussians - len(self.gaussians), 0)
         if n_cand > room and c.evict:
@@ -254,31 +190,20 @@ class Mapper:
             vs, us, strides = vs[pick], us[pick], strides[pick]
         if len(vs) == 0:
             return 0, n_cand
-        K = torch.as_tensor(fr.K, dtype=torch.float64)
-        z = depth[vs, us].double()
-        pc = torch.stack([(us.double() - K[0, 2]) * z / K[0, 0], (vs.double() - K[1, 2]) * z / K[1, 1], z], 1)
-        c2w = torch.as_tensor(fr.cam_to_world)
-        pw = pc @ c2w[:3, :3].T + c2w[:3, 3]
-        # Scale from the local point spacing: the footprint of a stride x stride block at depth z.
-        scale = c.seed_scale * strides * z / K[0, 0]
-        colors = torch.from_numpy(fr.rgb)[vs, us]
-        self.gaussians.append(pw.float(), scale.float(), colors, c.init_opacity)
+        means, scales = back_project(vs, us, strides, depth, fr.K, fr.cam_to_world, c.seed_scale)
+        self.gaussians.append(means.float(), scales.float(), torch.from_numpy(fr.rgb)[vs, us], c.init_opacity)
         self.optim.sync()
         return len(vs), n_cand - len(vs)
 
     @torch.no_grad()
     def _densify(self, fr: PreparedFrame, kf: Keyframe) -> tuple[int, int]:
         """Detail the map still lacks after optimising a keyframe: where it renders the right surface
-        in the wrong colour (L1 above `seed_colour_error`), split the coarse Gaussians drawing it
-        (`split_px`) and seed at half the stride, placed by the sensor depth or, where the sensor has
-        none, by the map's own rendered surface."""
+        in the wrong colour (L1 above `seed_colour_error`, seeding.detail_pixels), split the coarse
+        Gaussians drawing it (`split_px`) and seed at half the stride, placed by the sensor depth or,
+        where the sensor has none, by the map's own rendered surface."""
         w, h = kf.size
         out = self.render(kf.K, kf.cam_to_world, w, h, return_ids=True)
-        valid = kf.depth > 0
-        covered = out.alpha > 0.5
-        depth = torch.where(valid, kf.depth, out.depth / out.alpha.clamp(min=1e-6))
-        err = (out.channels + (1.0 - out.alpha)[..., None] * self.gaussians.background - kf.rgb).abs().mean(-1)
-        detail = (valid | covered) & (depth > 0) & (err > self.cfg.seed_colour_error)
+        depth, detail = detail_pixels(out, kf.rgb, kf.depth, self.gaussians.background, self.cfg.seed_colour_error)
         if self.cfg.split_px > 0 and detail.any():
             self._split_coarse(out.ids[detail], kf)
         return self._seed(fr, detail, depth, max(1, self.cfg.seed_stride // 2))
@@ -293,11 +218,8 @@ class Mapper:
         ids = torch.unique(ids[ids >= 0])
         if not len(ids):
             return 0
-        _, z = project(g.means[ids].double().numpy(), np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64))
-        z = torch.from_numpy(z).clamp(min=self.cfg.near)                                        # [M] metres
-        span = g.scales[ids].max(1).values.double() * float(kf.K[0, 0]) / z                   # [M] px
-        wide = span > self.cfg.split_px
-        big = ids[wide][torch.argsort(span[wide], descending=True)][:max(self.cfg.max_gaussians - len(g), 0)]
+        big = coarse_gaussians(g.means, g.scales, ids, kf.K, kf.cam_to_world, self.cfg.near, self.cfg.split_px,
+                               max(self.cfg.max_gaussians - len(g), 0))
         keep = torch.ones(len(g), dtype=torch.bool)
         keep[big] = False
         g.split(big, self._rng)
@@ -394,34 +316,17 @@ class Mapper:
     def protect(self, lo: np.ndarray, hi: np.ndarray, margin: float = 0.02, keep_last: int = 16) -> None:
         """Never evict the Gaussians inside the box lo..hi [3] (+ margin, metres): e.g. an object that
         was just grounded. The last `keep_last` boxes are kept."""
-        lo, hi = np.asarray(lo, np.float64) - margin, np.asarray(hi, np.float64) + margin
-        if lo.shape != (3,) or hi.shape != (3,) or not (np.isfinite(lo).all() and np.isfinite(hi).all()):
-            raise ValueError(f"protect: a box needs finite lo, hi [3], got {lo}, {hi}")
-        self.protected = (self.protected + [(lo, hi)])[-keep_last:]
+        self.protected = (self.protected + [protected_box(lo, hi, margin)])[-keep_last:]
 
     @torch.no_grad()
     def evict(self, n: int, K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int) -> int:
         """Remove up to `n` Gaussians the camera (K [3, 3], cam_to_world [4, 4], image size) does not
-        see, the least useful first: the lowest opacity x nearness to the camera (median distance /
-        (median + distance)) x recency (0.5 + 0.5 rank / N: the map keeps its Gaussians in the order
-        they were added). Gaussians in view and in protected boxes stay. Returns how many went."""
+        see, the least useful first (removal.eviction_order); Gaussians in view and in protected
+        boxes stay. Returns how many went."""
         g = self.gaussians
         if n <= 0 or not len(g):
             return 0
-        means = g.means.detach()
-        pts = means.double().numpy()
-        uv, z = project(pts, np.asarray(K, np.float64), np.asarray(cam_to_world, np.float64))
-        seen = in_image(uv, z, width, height, self.cfg.near)
-        d = torch.from_numpy(np.linalg.norm(pts - np.asarray(cam_to_world, np.float64)[:3, 3], axis=1)).float()
-        med = d.median().clamp(min=1e-3)
-        value = g.opacities.detach() * med / (med + d) * (0.5 + 0.5 * torch.arange(len(g)) / len(g))
-        value = torch.nan_to_num(value, nan=-1.0)   # broken Gaussians first
-        value[torch.from_numpy(seen)] = float("inf")
-        for lo, hi in self.protected:
-            lo_t, hi_t = torch.as_tensor(lo, dtype=means.dtype), torch.as_tensor(hi, dtype=means.dtype)
-            value[((means >= lo_t) & (means <= hi_t)).all(1)] = float("inf")
-        order = torch.argsort(value)[:n]
-        order = order[torch.isfinite(value[order])]
+        order = eviction_order(g, n, K, cam_to_world, width, height, self.cfg.near, self.protected)
         if not len(order):
             return 0
         keep = torch.ones(len(g), dtype=torch.bool)
@@ -432,24 +337,11 @@ class Mapper:
         return len(order)
 
     def drop_redundant_keyframe(self, metres_per_radian: float = 0.3) -> Keyframe | None:
-        """Drop the keyframe whose view another keyframe covers best: the smallest pose distance to
-        its nearest other keyframe (translation + metres_per_radian x rotation angle; ties: the
-        oldest). The newest `window` keyframes (the optimisation window) stay, and so does the last
-        one left. Its supervision goes with it; its Gaussians stay. Returns it (None: none could go)."""
-        kfs = self.keyframes
-        n_cand = len(kfs) - min(self.cfg.window, len(kfs) - 1)
-        if len(kfs) < 2 or n_cand <= 0:
-            return None
-        poses = np.stack([kf.cam_to_world for kf in kfs])                  # [N, 4, 4]
-        best, victim = np.inf, None
-        for i in range(n_cand):
-            d = pose_distances(poses, poses[i], metres_per_radian)          # [N]
-            d[i] = np.inf
-            if d.min() < best:
-                best, victim = float(d.min()), i
-        if victim is None:
-            return None
-        return self._remove_keyframe(victim)
+        """Drop the keyframe whose view another keyframe covers best (keyframes.most_redundant: the
+        newest `window` and the last one stay). Its supervision goes with it; its Gaussians stay.
+        Returns it (None: none could go)."""
+        victim = most_redundant(self.keyframes, self.cfg.window, metres_per_radian)
+        return None if victim is None else self._remove_keyframe(victim)
 
     def _remove_keyframe(self, i: int) -> Keyframe:
         """Take keyframe i out with its supervision (its Gaussians stay); counted as dropped."""
@@ -460,12 +352,11 @@ class Mapper:
         return kf
 
     def _prune(self) -> int:
+        """Remove transparent, oversized and broken Gaussians (removal.prune_keep); returns how many."""
         g, c = self.gaussians, self.cfg
         if not len(g):
             return 0
-        with torch.no_grad():
-            finite = torch.stack([torch.isfinite(getattr(g, k)).reshape(len(g), -1).all(1) for k in PARAMS]).all(0)
-            keep = finite & (g.opacities > c.prune_opacity) & (g.scales.max(1).values < c.prune_scale)
+        keep = prune_keep(g, c.prune_opacity, c.prune_scale)
         n = int((~keep).sum())
         if n:
             g.keep(keep)

@@ -12,7 +12,8 @@ import numpy as np
 import torch
 
 from ..config import ConfigError, MapConfig, config_from_dict, config_to_dict
-from .mapper import Keyframe, Mapper
+from .keyframes import Keyframe
+from .mapper import Mapper
 
 FORMAT = "rg-map"
 VERSION = 2
