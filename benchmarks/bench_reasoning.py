@@ -9,7 +9,7 @@ Per half: top-1 / top-3 among random 7-name scene vocabularies (the target alway
 and among the whole catalogue, real descriptions wrongly rejected, absent things rejected
 (absent queries get 7 random names), warm latency per implicit query, explicit latency, load time.
 --fit refits the text reasoner on the tune half and reports the fitted values (the defaults in
-rg_core/perception/reasoning/__init__.py FIT came from this); nothing is ever fit on the held-out half.
+rg_core/perception/reasoning/text.py FIT came from this); nothing is ever fit on the held-out half.
 --llm adds the LLM-scored ensemble (rg_core/perception/reasoning/llm_scorer.py, default model the packaged
 SmolLM2-135M; --llm-model any GGUF); with --fit its llm_weight and the reduction of a name's token
 log-probs (sum or mean) are grid-fit on the TUNE half (sum of 7-name and whole-catalogue top-1 over

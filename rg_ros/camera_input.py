@@ -11,7 +11,6 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.qos import qos_profile_sensor_data
-from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from rg_core.geometry.tf_buffer import TFBuffer
@@ -21,12 +20,7 @@ from rg_core.io.sync import ApproximateTimeSync, SyncedSet
 
 from . import convert as cv
 from .frame_queue import Frame
-from .params import NodeParams
-
-# qos_overrides./<topic>.<publisher|subscription>.{history,depth,reliability} parameters for every
-# topic (the node's publishers use it too)
-QOS_OVERRIDES = QoSOverridingOptions.with_default_policies()
-
+from .params import QOS_OVERRIDES, NodeParams
 
 class CameraInput:
     """Mixin of GroundingNode: the sensor subscriptions, the synchroniser and the frames they make.

@@ -16,7 +16,7 @@ from visualization_msgs.msg import MarkerArray
 from rg_core.grounding.result import GroundingResult
 
 from . import convert as cv
-from .camera_input import QOS_OVERRIDES
+from .params import QOS_OVERRIDES
 from .markers import graph_markers, result_markers
 from .params import DIAGNOSTICS_TOPIC, NodeParams
 from .pointcloud import to_pointcloud2

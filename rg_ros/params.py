@@ -13,9 +13,14 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos_overriding_options import QoSOverridingOptions
 
 from rg_core.config import GroundConfig, check_fields, section
 from rg_core.io.ros_input import InputConfig
+
+# qos_overrides./<topic>.<publisher|subscription>.{history,depth,reliability} parameters for every
+# topic the node subscribes or publishes
+QOS_OVERRIDES = QoSOverridingOptions.with_default_policies()
 
 NODE_NAME = "rg_node"
 

@@ -13,7 +13,7 @@ from .schema import section
 @section
 class ReasonConfig:
     """Reasoning backend: implicit query (+ reference view) -> target object name
-    (rg_core/perception/reasoning/__init__.py; thresholds measured on the synthetic catalogue)."""
+    (rg_core/perception/reasoning/text.py; thresholds measured on the synthetic catalogue)."""
 
     backend: str = "text"
     """"text" (offline MiniLM nearest name), "llama_cpp" (local GGUF) or "openai" (chat endpoint)."""
