@@ -55,11 +55,41 @@ def rasterizer_built() -> bool:
     return fast_cpu.available()
 
 
+BASELINE_DIR = "../baseline"   # where a recorded command checks out the code it compares with
+
+
+def commit_of(path: Path) -> str:
+    """The checkout at `path` as its short commit, '-dirty' when it has changes ('COMMIT' when it is not
+    a git checkout): how a record names the code it compared with."""
+    import subprocess
+
+    r = subprocess.run(["git", "-C", str(path), "describe", "--always", "--dirty"], capture_output=True, text=True)
+    return r.stdout.strip() if r.returncode == 0 and r.stdout.strip() else "COMMIT"
+
+
+def portable_path(arg: str) -> str:
+    """A path argument as anyone can type it in a checkout: relative inside it, and bench_out/<name>
+    for a path elsewhere on the machine that recorded it."""
+    p = Path(arg)
+    if not p.is_absolute():
+        return arg
+    return str(p.relative_to(ROOT)) if p.is_relative_to(ROOT) else f"bench_out/{p.name}"
+
+
 def command_line(argv: list[str] | None = None) -> str:
-    """The command that produced this result, as a user types it (without --json / --record)."""
+    """The command that produced this result, as anyone can run it from the checkout's root (without
+    --json / --record): no absolute paths, and a `--baseline-code DIR` comes with the commands that
+    check that code out and build its kernels."""
     argv = sys.argv if argv is None else argv
-    args = [a for a in argv[1:] if a not in ("--json", "--record")]
-    return " ".join(["python", f"benchmarks/{Path(argv[0]).name}", *args])
+    args, prefix = [a for a in argv[1:] if a not in ("--json", "--record")], ""
+    for i, a in enumerate(args):
+        if i and args[i - 1] == "--baseline-code":
+            prefix = (f"git worktree add {BASELINE_DIR} {commit_of(Path(a)).removesuffix('-dirty')} && "
+                      f"(cd {BASELINE_DIR} && python setup.py -q build_ext --inplace) && ")
+            args[i] = BASELINE_DIR
+        elif a.startswith("/"):
+            args[i] = portable_path(a)
+    return prefix + " ".join(["python", f"benchmarks/{Path(argv[0]).name}", *args])
 
 
 def check_result(rec: dict) -> list[str]:
@@ -74,6 +104,8 @@ def check_result(rec: dict) -> list[str]:
     for k in ("script", "command", "notes", "date"):
         if not isinstance(rec.get(k), str) or (k != "notes" and not rec.get(k)):
             bad.append(f"{k} must be a non-empty string")
+    if any(w.startswith(("/", "~")) for w in str(rec.get("command")).split()):
+        bad.append("command names an absolute path: write it as anyone runs it from the checkout")
     try:
         time.strptime(str(rec.get("date")), "%Y-%m-%d")
     except ValueError:

@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from rg_core.config import SynthConfig  # noqa: E402
 from rg_core.synth.generator import default_objects_dir, generate_scene  # noqa: E402
-from _common import add_output_flags, finish, pyplot, save_figure  # noqa: E402
+from _common import add_output_flags, commit_of, finish, pyplot, save_figure  # noqa: E402
 
 RUN = "import sys; sys.path.insert(0, sys.argv.pop(1)); from rg_core.cli import main; sys.exit(main(sys.argv[1:]))"
 
@@ -49,7 +49,7 @@ def to_rows(report: dict) -> tuple[list[dict], str]:
              "explicit_visible_new": r["new"]["explicit_visible"], "explicit_visible_change": r["miou_change"]}
             for r in report["runs"]]
     return rows, (f"rg eval seconds_build (frames to a queryable field) and explicit visible mIoU; baseline = "
-                  f"{report['baseline_code']} with its own defaults; rg synth scenes {report['views']} views 320x240, "
+                  f"the code at {report['baseline_commit']} with its own defaults; rg synth scenes {report['views']} views 320x240, "
                   "7 objects; fresh processes, baseline first")
 
 
@@ -82,7 +82,7 @@ def main() -> int:
     add_output_flags(ap)
     args = ap.parse_args()
     base = Path(args.baseline_code).resolve()
-    report = {"baseline_code": str(base), "views": args.views, "runs": []}
+    report = {"baseline_code": str(base), "baseline_commit": commit_of(base), "views": args.views, "runs": []}
     with tempfile.TemporaryDirectory() as tmp:
         scenes = []
         for seed in args.seeds:

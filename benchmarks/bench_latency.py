@@ -39,7 +39,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from _common import add_output_flags, finish  # noqa: E402
+from _common import add_output_flags, commit_of, finish  # noqa: E402
 
 
 def p95(xs):
@@ -155,12 +155,6 @@ def make_maps(map_path: Path, sizes: list[int], out: Path, tile: bool = False) -
         paths[n] = str(save_map(mm, out / f"map_{n}.rgmap"))
         print(f"map of {n} Gaussians: {paths[n]}", file=sys.stderr)
     return paths
-
-
-def _describe_code(code: Path) -> str:
-    """A checkout as its commit (and whether it has changes), else its path."""
-    r = subprocess.run(["git", "-C", str(code), "describe", "--always", "--dirty"], capture_output=True, text=True)
-    return f"the code at {r.stdout.strip()} ({code})" if r.returncode == 0 else str(code)
 
 
 def _med(xs) -> float:
@@ -305,7 +299,7 @@ def main() -> int:
     new_code = ROOT
     base_code = Path(a.baseline_code).resolve() if a.baseline_code else ROOT
     res = {"date": time.strftime("%Y-%m-%d %H:%M"), "cpus": os.cpu_count(), "load_avg_start": os.getloadavg(),
-           "baseline": _describe_code(base_code) if a.baseline_code else "this code with cache=False",
+           "baseline": f"the code at {commit_of(base_code)}" if a.baseline_code else "this code with cache=False",
            "queries": [q[:2] for q in queries], "warm": {}, "cold": {}, "tile": a.tile, "grow": a.grow}
     with tempfile.TemporaryDirectory() as tmp:
         maps = make_maps(Path(a.map), a.sizes, Path(tmp), a.tile)

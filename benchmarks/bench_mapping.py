@@ -31,7 +31,7 @@ from rg_core.io.captures import read_scene  # noqa: E402
 from rg_core.eval.mapping import map_scene  # noqa: E402
 from rg_core.map.run import stream_frames  # noqa: E402
 from rg_core.synth.generator import default_objects_dir, generate_scene  # noqa: E402
-from _common import add_output_flags, code_worker, finish, pyplot, save_figure  # noqa: E402
+from _common import add_output_flags, code_worker, commit_of, finish, pyplot, save_figure  # noqa: E402
 
 
 def to_rows(report: dict) -> tuple[list[dict], str]:
@@ -80,7 +80,7 @@ def against_baseline(base: Path, scene: str, seeds: list[int]) -> dict:
             runs[name].append(code_worker(__file__, code, [scene, "--worker-seed", str(seed)], 1800, name))
             r = runs[name][-1]
             print(f"{name} seed {seed}: {r['seconds']:.1f} s, PSNR {r['psnr']:.3f} dB", file=sys.stderr)
-    out = {"code": str(base), "seeds": seeds, "runs": runs}
+    out = {"code": f"the code at {commit_of(base)}", "seeds": seeds, "runs": runs}
     for name, rs in runs.items():
         out[name] = {"seconds_mean": round(statistics.mean(r["seconds"] for r in rs), 1),
                      "psnr_mean": round(statistics.mean(r["psnr"] for r in rs), 3),

@@ -82,3 +82,18 @@ def test_results_say_when_the_pure_torch_rasterizer_rendered(tmp_path, monkeypat
                                           out_dir=tmp_path).read_text())
     assert rec["notes"].endswith("PURE-TORCH RASTERIZER (the C++ kernel was not built)") and not _common.check_result(rec)
     assert make_docs.header("explicit_visible_miou") == "explicit visible mIoU" and make_docs.cell(0.123456) == "0.1235" and make_docs.cell(47.0) == "47.0"
+
+
+def test_recorded_commands_run_anywhere(tmp_path):
+    """A recorded command names no path of the machine that ran it: paths in the checkout become
+    relative, others bench_out/<name>, and a baseline checkout comes with the commands that make it."""
+    argv = ["/x/benchmarks/bench_demo.py", "--out", "/work/tmp/run3", "--scene", str(ROOT / "examples"),
+            "--baseline-code", str(ROOT), "--json"]
+    cmd = _common.command_line(argv)
+    commit = _common.commit_of(ROOT).removesuffix("-dirty")
+    assert cmd == (f"git worktree add ../baseline {commit} && (cd ../baseline && python setup.py -q build_ext "
+                   "--inplace) && python benchmarks/bench_demo.py --out bench_out/run3 --scene examples "
+                   "--baseline-code ../baseline"), cmd
+    rec = json.loads(RESULTS[0].read_text(encoding="utf-8"))
+    rec["command"] = "python benchmarks/bench_x.py --out /work/tmp/x"
+    assert any("absolute path" in b for b in _common.check_result(rec))
