@@ -9,6 +9,36 @@ import pytest
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
+# One arithmetic on every x86-64 machine that runs the suite (Intel and AMD, with or without
+# AVX-512): the math libraries pick their kernels by CPU, and two kernels round differently, so a
+# map trained for a fixed number of steps came out differently on another vendor's CPU. These pin
+# each library to kernels that every x86-64 machine here runs alike (AVX2 and FMA, which they all
+# have and the project's own C++ is built with; MKL's vendor-neutral branch) and to one thread (a
+# reduction splits the same way on any number of cores; scripts/test.sh runs two pytest-xdist
+# workers, one a core). Set before
+# torch or numpy is imported (pytest imports conftest first); child processes (rg, ros2 launch)
+# inherit them.
+CPU_PINS = {
+    "ATEN_CPU_CAPABILITY": "avx2",            # torch's vectorised ATen kernels
+    "MKL_CBWR": "COMPATIBLE",                 # MKL's BLAS under torch: its one branch that is the same on
+                                              # Intel and AMD (AVX2 falls back to AUTO on AMD)
+    "MKL_DYNAMIC": "FALSE",                   # MKL and OpenMP keep the thread count asked for
+    "OMP_DYNAMIC": "FALSE",
+    "ONEDNN_MAX_CPU_ISA": "AVX2",             # oneDNN (torch's convolutions)
+    "OPENBLAS_CORETYPE": "Haswell",           # numpy's and scipy's OpenBLAS
+    "NPY_DISABLE_CPU_FEATURES": "X86_V4,AVX512_ICL,AVX512_SPR",   # numpy's own AVX-512 loops
+    "OMP_NUM_THREADS": "1",                   # torch, MKL, OpenBLAS and the C++ rasterizer
+}
+for _k, _v in CPU_PINS.items():
+    os.environ.setdefault(_k, _v)
+
+# pytest-xdist workers (gw0, gw1, ...) each get their own ROS domain: two nodes named rg_node in one
+# domain would answer each other's /ground.
+_WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")
+if _WORKER.startswith("gw"):
+    _base = int(os.environ.get("ROS_DOMAIN_ID") or 1)
+    os.environ["ROS_DOMAIN_ID"] = str((_base + int(_WORKER[2:])) % 102)
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 RGBD = SHARED / "data" / "rgbd"

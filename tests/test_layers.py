@@ -1,4 +1,5 @@
-"""The import contract: layers go one way and no module imports itself back through others.
+"""The import contract: layers go one way and no module imports itself back through others; and
+the house rule that no module of rg_core or rg_ros grows past MAX_LINES (split it by capability).
 
 Every import counts, also those inside functions (a lazy import is still a dependency); a registry
 names its backends as "package.module:attr" strings, which are not imports. Read with ast, so a
@@ -10,6 +11,7 @@ import ast
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+MAX_LINES = 400
 
 # Lower layers first; a package imports only packages of lower layers.
 LAYERS = [
@@ -134,3 +136,21 @@ def test_the_contract_can_fail(tmp_path):
     assert edges == {"rg_core.map.store": {"rg_core.eval.metric"}, "rg_core.eval.metric": {"rg_core.map.store"}}
     assert upward(edges) == ["rg_core.map.store -> rg_core.eval.metric"]
     assert cycles(edges) == [["rg_core.eval.metric", "rg_core.map.store"]]
+
+
+def too_long(mods: dict[str, Path], limit: int = MAX_LINES) -> list[str]:
+    """'path: N lines' for every module longer than `limit` lines."""
+    out = []
+    for p in sorted(mods.values()):
+        n = len(p.read_text(encoding="utf-8").splitlines())
+        if n > limit:
+            out.append(f"{p.relative_to(REPO) if p.is_relative_to(REPO) else p}: {n} lines")
+    return out
+
+
+def test_no_module_over_the_line_limit(tmp_path):
+    long = too_long(modules())
+    assert not long, f"over {MAX_LINES} lines (split by capability, one public home each): {long}"
+    f = tmp_path / "big.py"   # the check itself can fail
+    f.write_text("x = 1\n" * (MAX_LINES + 1))
+    assert too_long({"big": f}) == [f"{f}: {MAX_LINES + 1} lines"]

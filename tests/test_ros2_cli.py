@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_ros_node import status_values, wait_for, write_params
+from test_ros_node import TF_WAIT, status_values, wait_for, write_params
 
 pytest.importorskip("rg_interfaces.srv", reason="rg_interfaces is not installed: scripts/bootstrap.sh builds it from msg/")
 pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs is not installed: scripts/bootstrap.sh builds it from msg_tf2/")
@@ -149,7 +149,7 @@ def launched(tmp_path_factory, probe):
     bag = write_scene_bag(frames, tmp / "bag")
     realsense = yaml.safe_load((REPO / "config" / "realsense.yaml").read_text())["rg_node"]["ros__parameters"]
     params = write_params(tmp / "params.yaml", "rg_node", **(realsense | dict(
-        map_width=160, iters_per_keyframe=3, torch_threads=1, frame_queue_size=64, tf_wait=2.0, tf_max_gap=0.12,
+        map_width=160, iters_per_keyframe=3, torch_threads=1, frame_queue_size=64, tf_wait=TF_WAIT, tf_max_gap=0.12,
         train_slice=0.5, train_seconds_max=2.0, status_period=0.3, mask_rate=4.0, map_cloud_period=1.0,
         # the interfaces are under test, not the answer: a 2 s field over 160 px frames with the offline
         # models is not sure of 'a box' (calibrated confidence about 0.2); 0 returns it anyway, so that

@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 import pytest
-from test_ros_node import is_settled, ros_args, start, status_values, stop, wait_for, write_params
+from test_ros_node import TF_WAIT, is_settled, ros_args, start, status_values, stop, wait_for, write_params
 
 pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs is not installed: scripts/bootstrap.sh builds it from msg_tf2/")
 pytest.importorskip("rosbags")
@@ -61,7 +61,7 @@ class BagHarness:
                               qos_overrides={t: reliable for t in (COLOR_TOPIC, DEPTH_TOPIC, INFO_TOPIC)},
                               map_width=WIDTH, iters_per_keyframe=ITERS,
                               torch_threads=1, frame_queue_size=64, features=True, train_slice=0.5,
-                              train_seconds_max=2.0, status_period=0.3, tf_max_gap=0.12, map_cloud_period=0.0, tf_wait=2.0,
+                              train_seconds_max=2.0, status_period=0.3, tf_max_gap=0.12, map_cloud_period=0.0, tf_wait=TF_WAIT,
                               mask_rate=0.0)
         self.node_p = start(["node", "--params", str(params), *ros_args(BAG_INPUTS)], self.log)
         self.ctx = rclpy.Context()
@@ -242,7 +242,7 @@ def test_bad_input_keeps_node_and_map(h, case):
             pub.publish(m)
         return expect in h.node_log()
 
-    wait_for(send, 30, f"'{expect}' in the node log")
+    wait_for(send, 30 + (TF_WAIT if case == "wrong_frame_id" else 0), f"'{expect}' in the node log")   # dropped after tf_wait
     after = h.fresh()
     assert after["frames"] == before["frames"] and after["gaussians"] == before["gaussians"]
     assert h.node_p.poll() is None
@@ -314,7 +314,7 @@ def test_odometry_pose_source(h):
     params = write_params(h.tmp / "c.yaml", "rg_node_c", pose_source="odometry", features=False,
                           color_transport="compressed", depth_transport="compressedDepth",
                           map_width=80, iters_per_keyframe=1, torch_threads=1, status_period=0.3,
-                          save_path=str(save), frame_queue_size=16, tf_wait=2.0)
+                          save_path=str(save), frame_queue_size=16, tf_wait=TF_WAIT)
     log = h.tmp / "node_c.log"
     remap = {"rgb/image": "/c/color/image_raw", "depth/image": "/c/depth/image_raw", "rgb/camera_info": "/c/info",
              "odom": "/c/odom", "ground": "/ground_c"}

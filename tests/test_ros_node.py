@@ -73,6 +73,11 @@ def is_settled(st: dict) -> bool:
 
 
 status_values = endurance.status_values
+# tf_wait of the tests whose bags carry every transform: a frame then waits for the TF sample after
+# its stamp, which the replayer sends 0.1 s (bag time) later. A drop must mean a missing transform,
+# never a replayer or executor stalled by a loaded CPU (2 s was once too short at load average 8). A
+# test waiting for a drop on purpose (a frame no transform will ever reach) waits this long first.
+TF_WAIT = 10.0
 
 
 def wait_for(cond, timeout: float, what: str):

@@ -318,8 +318,13 @@ sys.exit(code)
 
 
 def test_rg_map_bag_matches_the_folder(frames, tmp_path):
-    """`rg map` on the bag and on the same frames as a folder: test PSNR within 0.2 dB (160 px,
-    short budgets; benchmarks/bench_bag.py measures the full scene)."""
+    """`rg map` on a lossless bag (raw bgr8 / 16UC1 images) and on the same frames as a folder: the
+    same keyframes and test views, and test PSNR within 0.05 dB (160 px, short budgets;
+    benchmarks/bench_bag.py measures the full scene). The maps differ only by the poses' float64
+    round trip through four TF links (1e-12 m); measured, 2026-12-01: 0.000-0.004 dB over one and two
+    threads and torch's default, AVX2 and AVX-512 kernels. JPEG colour (the default bag) changes the
+    images themselves (0.24 dB here), so it is not what this compares; test_bag_reads_back_the_scene
+    bounds its error."""
     import os
     import subprocess
     import sys
@@ -338,7 +343,7 @@ def test_rg_map_bag_matches_the_folder(frames, tmp_path):
             os.symlink(p, folder / p.name)
     # a folder's frames are stamped by index (1 s apart) and keyframe selection reads stamps
     # (map.kf_min_interval): the bag carries the same timing so both maps see the same keyframes
-    b = write_scene_bag(frames, tmp_path / "bag", period=1.0)
+    b = write_scene_bag(frames, tmp_path / "bag", period=1.0, raw=True)
     cfg = tmp_path / "small.yaml"
     cfg.write_text("map:\n  width: 160\n  iters_per_keyframe: 5\n  final_iters: 30\n")
     out = {}
@@ -347,9 +352,10 @@ def test_rg_map_bag_matches_the_folder(frames, tmp_path):
                              "--json", "--quiet")
         assert code == 0, out[name]
     assert out["bag"]["bag"]["frames"] == N_FRAMES and out["bag"]["test_frames"] == out["folder"]["test_frames"] == 2
+    assert out["bag"]["keyframes"] == out["folder"]["keyframes"], (out["bag"], out["folder"])
     diff = out["bag"]["test"]["psnr"] - out["folder"]["test"]["psnr"]
     print(f"test PSNR: bag {out['bag']['test']['psnr']:.3f}, folder {out['folder']['test']['psnr']:.3f} dB")
-    assert abs(diff) <= 0.2, (out["bag"]["test"], out["folder"]["test"])
+    assert abs(diff) <= 0.05, (out["bag"]["test"], out["folder"]["test"])
     # options reach the reader; a bad one is a clear error
     code, res = rg("map", str(b), "--out", str(tmp_path / "x.rgmap"), "--pose-source", "topic", "--json", "--quiet")
     assert code == 2 and "pose_source topic: no geometry_msgs/msg/PoseStamped topic" in res["error"]
