@@ -10,12 +10,15 @@ STABILITY_K = "stab or extreme or huge or nan or degenerate or scales_from or op
 
 @dataclass
 class Budgets:
-    """Every knob of a report run; `map_overrides` apply to MapConfig in every mapping run."""
+    """Every knob of a report run; `map_overrides` and `field_overrides` apply to every run's config."""
 
     map_iters: tuple = (1, 2, 3, 5, 8, 12, 15, 20, 30)
     """iters_per_keyframe of the mapping section, log-spaced (include the default to mark it)."""
     map_overrides: dict = field(default_factory=dict)
     """MapConfig fields changed for every run of the report (tiny: fewer iterations)."""
+    field_overrides: dict = field(default_factory=dict)
+    """FieldConfig fields changed for every run (tiny: a 2 s ceiling for the stop test and the saving
+    that compares it with training the whole ceiling)."""
     field_seconds: tuple = (1.0, 2.0, 3.0, 5.0, 8.0, 13.0, 20.0, 30.0, 50.0, 80.0)
     """Cumulative feature-training budgets of the grounding section (one field, evaluated at each),
     log-spaced; a second field runs the stop test and is marked on the curve."""
@@ -51,6 +54,7 @@ def full_budgets(**over) -> Budgets:
 def tiny_budgets(**over) -> Budgets:
     """Seconds, not minutes: the test suite runs this so `rg report` keeps working."""
     base = dict(map_iters=(2, 4), map_overrides={"iters_per_keyframe": 4, "final_iters": 10, "width": 80},
+                field_overrides={"seconds": 2.0},
                 field_seconds=(0.5, 1.0), latency_sizes=(300, 1500), latency_queries=2, savings_field_seconds=0.5,
                 cluster_all_max=1000, frames=(3, 6), sizes=((64, 48), (128, 96)), size_views=3, synth_objects=2,
                 stability_files=("tests/test_render_stability.py",), stability_k="float32 or huge",

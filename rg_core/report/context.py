@@ -21,7 +21,8 @@ class Context:
     def __init__(self, scene_dir, out: Path, budgets: Budgets, cfg: RGConfig | None = None, progress: bool = True):
         self.scene_dir, self.out, self.b, self.progress = Path(scene_dir), Path(out), budgets, progress
         cfg = cfg or RGConfig()
-        self.cfg = dataclasses.replace(cfg, map=dataclasses.replace(cfg.map, **budgets.map_overrides))
+        self.cfg = dataclasses.replace(cfg, map=dataclasses.replace(cfg.map, **budgets.map_overrides),
+                                       field=dataclasses.replace(cfg.field, **budgets.field_overrides))
         self.scene = read_scene(scene_dir)
         self.cache: dict = {}
         self.plots = self.out / "plots"
