@@ -37,7 +37,7 @@ for _k, _v in CPU_PINS.items():
 _WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")
 if _WORKER.startswith("gw"):
     _base = int(os.environ.get("ROS_DOMAIN_ID") or 1)
-    os.environ["ROS_DOMAIN_ID"] = str((_base + int(_WORKER[2:])) % 102)
+    os.environ["ROS_DOMAIN_ID"] = str(1 + (_base - 1 + int(_WORKER[2:])) % 101)   # 1-101: never the default 0
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"

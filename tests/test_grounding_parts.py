@@ -368,3 +368,20 @@ def test_merge_closer_than_joins_touching_clusters_and_keeps_noise():
     out = merge_closer_than(x, np.array([0, 1, 2, 2, -1, -1]), 0.06)   # 0 and 1 touch at 0.05
     assert out[0] == out[1] != out[2] == out[3] and (out[4:] == -1).all()
     np.testing.assert_array_equal(merge_closer_than(x, np.full(6, -1), 0.1), np.full(6, -1))
+
+
+def test_groups_ball_and_nearest_pick_gaussians_by_feature():
+    """A query feature in no cluster: ball() takes the Gaussians within the median cluster radius,
+    nearest() the k most similar ones (sorted Gaussian ids of a region's rows) and their mean similarity."""
+    from rg_core.grounding.grouping import Groups
+
+    f = torch.nn.functional.normalize(torch.tensor([[1.0, 0.0], [0.9, 0.1], [0.0, 1.0], [-1.0, 0.0]]), dim=-1)
+    g = Groups(labels=np.array([0, 0, -1, -1]), centres=f[:1], clustered=4, seconds=0.0,
+               radius=torch.tensor([0.01]), features=f, ids=np.array([40, 10, 30, 20]))
+    assert g.ball(torch.tensor([2.0, 0.0])).tolist() == [40, 10]          # cosine distance <= 0.01 (0.0061 for row 1)
+    assert g.ball(torch.tensor([0.0, 1.0]), radius=0.5).tolist() == [30]
+    ids, sim = g.nearest(torch.tensor([1.0, 0.2]), 2)
+    assert ids.tolist() == [10, 40] and 0.95 < sim <= 1.0
+    ids, _ = g.nearest(torch.tensor([1.0, 0.0]), 10)                        # k above the rows: all of them
+    assert ids.tolist() == [10, 20, 30, 40]
+    assert Groups(labels=np.zeros(0, np.int64), centres=f[:0], clustered=0, seconds=0.0).ball(f[0]).size == 0
