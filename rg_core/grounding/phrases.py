@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import re
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 from ..perception.colour_names import COLOUR_TERMS
 
@@ -112,6 +113,37 @@ def _singular(name: str) -> str:
     if name.endswith(("ches", "shes", "xes", "ses")):
         return name[:-2]
     return name[:-1] if name.endswith("s") and not name.endswith("ss") else name
+
+
+def is_thing_name(name: str, vocabulary=()) -> bool:
+    """Whether `name` names a thing rather than describes one: a short noun phrase (at most three
+    words, letters only, no clause word) that is a name of `vocabulary` or vocabulary.HOUSEHOLD, a
+    name the WordNet knowledge holds (perception/knowledge.py; with modifiers: "striped mug") or
+    one of its categories ("fruit", "hand tool"). "banana", "giraffe" are names; "small metal
+    scoop", "squeezing tool, with a long bar" descriptions."""
+    from .vocabulary import HOUSEHOLD
+
+    name = _singular(" ".join(str(name).lower().split()))
+    words = name.split()
+    if not re.fullmatch(r"[a-z][a-z' -]*", name) or len(words) > 3 or set(words) & CLAUSE:
+        return False
+    if name in {_singular(str(v).lower()) for v in (*vocabulary, *HOUSEHOLD)}:
+        return True
+    from ..perception.knowledge import KnowledgeError, load_knowledge
+
+    try:
+        return load_knowledge().entry(name) is not None or name in _categories()
+    except KnowledgeError:
+        return False
+
+
+@lru_cache(maxsize=1)
+def _categories() -> frozenset[str]:
+    """The knowledge's hypernyms and their head nouns ("edible fruit", "fruit")."""
+    from ..perception.knowledge import load_knowledge
+
+    hyp = {h.lower() for e in load_knowledge().names.values() for h in e.get("hypernyms", [])}
+    return frozenset(hyp | {h.split()[-1] for h in hyp})
 
 
 def _relation(text: str) -> Relational | None:

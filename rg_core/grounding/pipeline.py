@@ -221,7 +221,8 @@ class Grounder:
         if rq is not None:   # about objects in relation to others: over the scene graph
             s = time.perf_counter()
             objs = self.scene_graph()
-            if relations.for_graph(rq, objs):
+            if relations.for_graph(rq, objs, self.vocabulary()):   # with the query's names the graph lacks
+                objs = relations.with_query_names(self, rq, objs)
                 return self._relational(rq, objs, query, max_results, view, {"graph": time.perf_counter() - s}, t0)
         t: dict[str, float] = {}
         res = GroundingResult(False, "", query=query)

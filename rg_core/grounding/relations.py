@@ -18,7 +18,7 @@ import numpy as np
 
 from ..perception.colour_names import COLOUR_TERMS, colour_term
 from .boxes import robust_inliers
-from .phrases import Relational, _nth, _singular
+from .phrases import Relational, _nth, _singular, is_thing_name
 from .result import GroundedObject, GroundingResult
 
 NEAR_GAP = 0.10        # metres between two objects' boxes that still count as near (counting, "all")
@@ -27,6 +27,11 @@ MIN_GAUSSIANS = 5      # fewer Gaussians are a speck, not an object
 # Supports a map rarely holds as an object (a plane under everything): "on the table" without a
 # table in the graph means resting on a surface, not on another object.
 SURFACES = ("table", "desk", "counter", "countertop", "worktop", "shelf", "surface", "floor", "ground", "bench")
+# A ranking whose best two are this close is a tie, not an answer (the robot must not act on a coin
+# toss): distances and heights within max(TIE_M, TIE_SHARE of the best's), tops within TIE_M, volumes
+# within TIE_VOLUME of the best's (three axes of about TIE_SHARE each). A mapped object's centre and box
+# move by about a centimetre between builds of the same scene (the Gaussians that survive).
+TIE_M, TIE_SHARE, TIE_VOLUME = 0.01, 0.05, 0.15
 
 
 @dataclass
@@ -62,24 +67,57 @@ class SceneObject:
 def build_graph(g, names: list[str]) -> list[SceneObject]:
     """Ground every name once (explicit), merge answers sharing their Gaussians."""
     objs: list[SceneObject] = []
-    gs = g.mapper.gaussians
     for name in dict.fromkeys(names):
+        _add(g, objs, name, g._ground(name, "explicit", 1))
+    return objs
+
+
+def _add(g, objs: list[SceneObject], name: str, res: GroundingResult) -> bool:
+    """Put an explicit answer for `name` into `objs`: a name more of the object whose Gaussians it
+    shares (that object replaced, not changed: `objs` may copy a cached graph), else a new object.
+    False when absent, not sure (below the calibrated threshold) or a stray speck: not in the graph."""
+    if not res.success or len(res.objects[0].gaussian_ids) < MIN_GAUSSIANS:
+        return False
+    o = res.objects[0]
+    ids = set(o.gaussian_ids.tolist())
+    home = next((i for i, s in enumerate(objs) if len(ids & set(s.obj.gaussian_ids.tolist()))
+                 >= SAME_OBJECT * min(len(ids), len(s.obj.gaussian_ids))), None)
+    if home is not None:
+        s = objs[home]
+        objs[home] = SceneObject(sorted(s.names + [(name, float(res.confidence))], key=lambda nc: -nc[1]), s.obj, s.colour)
+    else:
+        objs.append(SceneObject([(name, float(res.confidence))], o, _colour(g, o)))
+    return True
+
+
+def _colour(g, o: GroundedObject) -> str:
+    """The basic colour term of what the keyframes saw of the object's robust core ("" if nothing)."""
+    gs = g.mapper.gaussians
+    keep = o.gaussian_ids[robust_inliers(gs.means.detach().numpy()[o.gaussian_ids])]
+    px = observed_pixels(g.mapper, gs.means.detach().numpy()[keep])
+    if not len(px) and len(keep):   # seen in no keyframe (occluded everywhere): the Gaussians' own colours
+        px = (gs.colors.detach()[keep].clamp(0, 1) * 255).round().byte().numpy()
+    return colour_term(px) if len(px) else ""
+
+
+def with_query_names(g, rq: Relational, objs: list[SceneObject]) -> list[SceneObject]:
+    """The graph plus the query's own names it lacks (target, anchors: names of things, not
+    descriptions), each grounded once as build_graph grounds the vocabulary's. The graph holds only
+    names of the vocabulary; without scene names that is the household names the masks are nearest
+    to, and the masks of an orange cup are nearest "orange", which abstains on it, as "cup" does
+    beside it: so when a name's best guess has a colour that is itself a vocabulary name, the colour
+    and the name together are asked too ("orange cup"). A new list: the cached graph is kept as is."""
+    vocab = g.vocabulary()
+    names = [n for n in dict.fromkeys((rq.target, *rq.anchors)) if n and is_thing_name(n, vocab) and not _match(objs, n)]
+    if not names:
+        return objs
+    objs, colours = list(objs), {v.lower() for v in vocab if v.lower() in COLOUR_TERMS}
+    for name in names:
         res = g._ground(name, "explicit", 1)
-        if not res.success or len(res.objects[0].gaussian_ids) < MIN_GAUSSIANS:
-            continue   # absent, not sure (below the calibrated threshold) or a stray speck: not in the graph
-        o = res.objects[0]
-        ids = set(o.gaussian_ids.tolist())
-        home = next((s for s in objs if len(ids & set(s.obj.gaussian_ids.tolist()))
-                     >= SAME_OBJECT * min(len(ids), len(s.obj.gaussian_ids))), None)
-        if home is not None:
-            home.names.append((name, float(res.confidence)))
-            home.names.sort(key=lambda nc: -nc[1])
-            continue
-        keep = o.gaussian_ids[robust_inliers(gs.means.detach().numpy()[o.gaussian_ids])]
-        px = observed_pixels(g.mapper, gs.means.detach().numpy()[keep])
-        if not len(px) and len(keep):   # seen in no keyframe (occluded everywhere): the Gaussians' own colours
-            px = (gs.colors.detach()[keep].clamp(0, 1) * 255).round().byte().numpy()
-        objs.append(SceneObject([(name, float(res.confidence))], o, colour_term(px) if len(px) else ""))
+        if not _add(g, objs, name, res) and res.objects and colours:
+            c = (_colour(g, res.objects[0]).split() or [""])[-1]
+            if c in colours and not name.startswith(c + " "):
+                _add(g, objs, f"{c} {name}", g._ground(f"{c} {name}", "explicit", 1))
     return objs
 
 
@@ -123,11 +161,13 @@ def _is_a(n: str, name: str) -> bool:
     return any(h == name or h.endswith(" " + name) for h in e.get("hypernyms", []))
 
 
-def for_graph(rq: Relational, objs: list[SceneObject]) -> bool:
+def for_graph(rq: Relational, objs: list[SceneObject], vocabulary=()) -> bool:
     """Whether the graph should answer `rq`: counting always (none is an answer); anything else when
-    the target is any object or one the map holds. Otherwise the phrase is a description ("small metal
-    scoop on a handle", "the biggest squeezing tool, with a long bar") and takes the usual path."""
-    return rq.count or not rq.target or bool(_match(objs, rq.target))
+    the target is any object, one the map holds or a name of a thing (phrases.is_thing_name: "the
+    banana next to the lemon" on a map without one says so). Otherwise the phrase is a description
+    ("small metal scoop on a handle", "the biggest squeezing tool, with a long bar") and takes the
+    usual path."""
+    return rq.count or not rq.target or bool(_match(objs, rq.target)) or is_thing_name(rq.target, vocabulary)
 
 
 def _match(objs: list[SceneObject], name: str, colour: str = "") -> list[SceneObject]:
@@ -243,8 +283,11 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
     on_surface = rq.relation == "on" and not anchors
     cands = [o for o in _match(objs, rq.target, rq.colour) if all(o is not f[0] for _, f in anchors)]
     what = " ".join(x for x in (rq.colour, rq.target or "object") if x)
-    if not cands:
-        res.message = f"no {what!r} in the map (objects: {known})"
+    if not cands:   # counting a thing the map lacks is an answer, 0; a word no name of a thing is not
+        thing = not rq.target or is_thing_name(rq.target)
+        res.success = bool(rq.count and thing)
+        res.message = f"{'0' if res.success else 'no'} {what!r} in the map (objects: {known})" + (
+            "" if thing else f": {rq.target!r} is no name of the vocabulary or the name knowledge")
         res.explanation = rq.describe()
         return res
     notes += [f"{len(f)} {a!r} in the map: relating to the most certain ({f[0].names[0][1]:.2f})"
@@ -283,6 +326,7 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
             res.explanation = "; ".join([rq.describe(), f"no {what!r}{where}"] + notes) + "."
             return res
     side_x = lambda o: float(cam(o.centre)[0] / max(cam(o.centre)[2], 1e-6))      # noqa: E731 - image-plane x
+    tied, tie = 1, ""   # how many lead the ranking within its tie tolerance (TIE_*), and that tolerance
     if rq.count or rq.every:
         chosen = sorted(cands, key=side_x)
         why = f"{len(chosen)} {what!r}{where} in the map"
@@ -296,11 +340,16 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
         nth = "last" if rq.ordinal < 0 else _nth(rq.ordinal)
         why = f"{nth} of {len(order)} from the {rq.side}, seen from {camera}"
     elif rq.superlative:
-        key = {"biggest": lambda o: -o.volume, "smallest": lambda o: o.volume,
-               "tallest": lambda o: -G(o).height, "shortest": lambda o: G(o).height,
-               "highest": lambda o: -G(o).top, "lowest": lambda o: G(o).top,
-               "nearest_camera": lambda o: float(np.linalg.norm(cam(o.centre)))}[rq.superlative]
-        chosen = cands = sorted(cands, key=key)
+        sup = rq.superlative
+        val = {"biggest": lambda o: o.volume, "smallest": lambda o: o.volume, "tallest": lambda o: G(o).height,
+               "shortest": lambda o: G(o).height, "highest": lambda o: G(o).top, "lowest": lambda o: G(o).top,
+               "nearest_camera": lambda o: float(np.linalg.norm(cam(o.centre)))}[sup]
+        chosen = cands = sorted(cands, key=lambda o: -val(o) if sup in ("biggest", "tallest", "highest") else val(o))
+        v = [val(o) for o in cands]
+        tol, tie = ((TIE_VOLUME * v[0], f"{TIE_VOLUME:.0%}") if sup in ("biggest", "smallest") else
+                    (TIE_M, f"{100 * TIE_M:.0f} cm") if sup in ("highest", "lowest") else
+                    (max(TIE_M, TIE_SHARE * v[0]), f"max({100 * TIE_M:.0f} cm, {TIE_SHARE:.0%})"))
+        tied = sum(abs(x - v[0]) <= tol for x in v)
         vals = {"biggest": lambda o: f"{1e6 * o.volume:.0f} cm3", "smallest": lambda o: f"{1e6 * o.volume:.0f} cm3",
                 "tallest": lambda o: f"{100 * G(o).height:.0f} cm tall",
                 "shortest": lambda o: f"{100 * G(o).height:.0f} cm tall",
@@ -318,12 +367,14 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
             d = sorted((float(np.linalg.norm(o.centre - point)), i) for i, o in enumerate(cands))
             unit = "m"
         chosen = [cands[i] for _, i in d]   # ranked: max_results > 1 returns the runners-up too
+        tied = sum(x - d[0][0] <= max(TIE_M, TIE_SHARE * d[0][0]) for x, _ in d)
+        tie = f"max({100 * TIE_M:.0f} cm, {TIE_SHARE:.0%})"
         why = f"{where.strip()} ({d[0][0]:.2f} {unit}" + (
             f", next nearest {d[1][0]:.2f} m" if len(d) > 1 else "") + ")"
     else:   # attribute only ("the red cup"): the most certain
         chosen = sorted(cands, key=lambda o: (rq.colour not in o.name.split(), -o.names[0][1]))   # named so first
         why = f"{len(cands)} {what!r}{where} in the map" + (", the most certain" if len(cands) > 1 else "")
-    chosen = chosen if rq.count or rq.every else chosen[:max(max_results, 1)]
+    chosen = chosen if rq.count or rq.every else chosen[:max(max_results, tied, 1)]
     if not chosen:   # counting nothing is an answer: zero
         res.success, res.message = True, f"0 {what!r}{where} in the map"
         res.explanation = "; ".join([rq.describe(), res.message] + notes) + "."
@@ -332,5 +383,9 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
     res.target = chosen[0].name
     res.confidence = min(c for o in chosen for n, c in o.names[:1])
     res.message = (f"{why}" if rq.count or rq.every else f"{res.target!r}: {why}") + f"; {len(res.objects)} group(s)"
+    if tied > 1:   # a coin toss is no answer: say so, with every tied group
+        res.success, res.target = False, rq.target
+        why += f"; a tie: {' and '.join(repr(o.name) for o in chosen[:tied])} within {tie} of each other, not choosing one"
+        res.message = f"{why}; {len(res.objects)} group(s)"
     res.explanation = "; ".join([rq.describe(), why] + notes) + "."
     return res
