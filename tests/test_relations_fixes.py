@@ -88,9 +88,11 @@ def test_equally_near_objects_are_a_tie_with_both_groups():
 def test_between_ties_too():
     objs = [at("apple", -0.2), at("plum", 0.2), at("lemon", 0.0, 0.1), at("marker", 0.0, -0.1), at("pen", 0.5, 0.5)]
     r = ask("the object between the apple and the plum", objs, max_results=3)
-    assert not r.success and "a tie: 'lemon' and 'marker'" in r.message and len(r.objects) == 3, r.message
+    assert not r.success and "a tie: 'lemon' and 'marker' within" in r.message and len(r.objects) == 3, r.message
     objs[3] = at("marker", 0.0, -0.2)
     assert ask("the object between the apple and the plum", objs).target == "lemon"
+    objs[3], objs[4] = at("marker", 0.0, -0.1), at("pen", 0.1, 0.0)            # three at 0.1 m
+    assert "a tie: 'lemon', 'marker' and 'pen' within" in ask("the object between the apple and the plum", objs).message
 
 
 @pytest.mark.parametrize("query, ok", [("the biggest cup", False), ("the tallest cup", False), ("the highest cup", False),

@@ -385,7 +385,8 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
     res.message = (f"{why}" if rq.count or rq.every else f"{res.target!r}: {why}") + f"; {len(res.objects)} group(s)"
     if tied > 1:   # a coin toss is no answer: say so, with every tied group
         res.success, res.target = False, rq.target
-        why += f"; a tie: {' and '.join(repr(o.name) for o in chosen[:tied])} within {tie} of each other, not choosing one"
+        n = [repr(o.name) for o in chosen[:tied]]
+        why += f"; a tie: {', '.join(n[:-1])} and {n[-1]} within {tie} of each other, not choosing one"
         res.message = f"{why}; {len(res.objects)} group(s)"
     res.explanation = "; ".join([rq.describe(), why] + notes) + "."
     return res
