@@ -140,14 +140,11 @@ def object_to_msg(obj: CoreObject):
         confidence=float(obj.confidence), aabb_min=_vec(obj.aabb_min, Point), aabb_max=_vec(obj.aabb_max, Point))
 
 
-def result_to_response(result: GroundingResult, frame_id: str, stamp: float | Time | None = None, response=None):
-    """GroundingResult -> Ground.Response: objects, their Gaussian centres as one xyz+rgb cloud, timings."""
-    from rg_interfaces.srv import Ground
-
-    res = response if response is not None else Ground.Response()
+def answer_fields(result: GroundingResult, frame_id: str, stamp: float | Time | None, res):
+    """The fields every answer carries (Ground and Teach responses): success, message, explanation,
+    confidence, objects and their Gaussian centres as one xyz+rgb cloud in `frame_id`."""
     res.success, res.message = bool(result.success), str(result.message)
-    res.target, res.explanation = str(result.target), str(result.explanation)
-    res.confidence = float(result.confidence)
+    res.explanation, res.confidence = str(result.explanation), float(result.confidence)
     res.objects = [object_to_msg(o) for o in result.objects]
     if result.objects:
         pts = np.concatenate([np.asarray(o.points, np.float32).reshape(-1, 3) for o in result.objects])
@@ -155,6 +152,15 @@ def result_to_response(result: GroundingResult, frame_id: str, stamp: float | Ti
     else:
         pts, cols = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
     res.cloud = to_pointcloud2(pts, cols, frame_id, header(frame_id, stamp).stamp)
+    return res
+
+
+def result_to_response(result: GroundingResult, frame_id: str, stamp: float | Time | None = None, response=None):
+    """GroundingResult -> Ground.Response: objects, their Gaussian centres as one xyz+rgb cloud, timings."""
+    from rg_interfaces.srv import Ground
+
+    res = answer_fields(result, frame_id, stamp, response if response is not None else Ground.Response())
+    res.target = str(result.target)
     res.stage_names = [str(k) for k in result.timings]
     res.stage_seconds = [float(v) for v in result.timings.values()]
     return res

@@ -1,8 +1,10 @@
-"""The ROS 2 node: subscriptions -> approximate time sync -> MapWorker; /ground, ~/save_map, ~/reset;
-masks, clouds, markers and diagnostics out. Thin: message conversion and calls into rg_core only.
+"""The ROS 2 node: subscriptions -> approximate time sync -> MapWorker; /ground, ~/save_map, ~/reset,
+~/teach, ~/forget; masks, clouds, markers and diagnostics out. Thin: message conversion and calls into
+rg_core only.
 
 Parameters and names: params.py; the worker it drives: worker_setup.py; inputs: camera_input.py
-and tf_input.py; publishers and periodic publishing: outputs.py; running it (signals, executor): run.py.
+and tf_input.py; clicked points, teaching and forgetting: teaching.py; publishers and periodic
+publishing: outputs.py; running it (signals, executor): run.py.
 """
 from __future__ import annotations
 
@@ -19,14 +21,14 @@ from rg_core.perception.query import parse_mode, query_problem
 
 from . import convert as cv
 from .camera_input import CameraInput
-from .markers import result_markers
 from .outputs import NodeOutputs
 from .params import GROUND_SERVICE, NODE_NAME, check_unknown_params, declare_params
+from .teaching import Teaching
 from .tf_input import TFInput
 from .worker_setup import make_worker
 
 
-class GroundingNode(CameraInput, TFInput, NodeOutputs, Node):
+class GroundingNode(CameraInput, TFInput, Teaching, NodeOutputs, Node):
     def __init__(self, node_name: str = NODE_NAME, **kwargs):
         """Parameters come from rcl (--ros-args --params-file / -p, or `parameter_overrides`); a bad
         one is a ValueError naming it (rg-node prints it and exits 2). Names are relative (remapping)."""
@@ -44,6 +46,7 @@ class GroundingNode(CameraInput, TFInput, NodeOutputs, Node):
         self.input_errors: dict[str, int] = {}
         self._make_inputs(p)
         self._make_services()
+        self._make_teaching(p)
         self._make_outputs(p)
         check_unknown_params(self, qos_only=True)   # qos_overrides.* exist once the entities do
         self._make_timers(p)
@@ -52,7 +55,8 @@ class GroundingNode(CameraInput, TFInput, NodeOutputs, Node):
                      "odometry": f"Odometry {self.topics.get('pose')}"}[p.pose_source]
         self.get_logger().info(
             f"listening: colour {self.topics['color']}, depth {self.topics['depth']}, info {self.topics['info']}, "
-            f"pose from {pose_from}; service {self.resolve_service_name(GROUND_SERVICE)}; "
+            f"pose from {pose_from}; service {self.resolve_service_name(GROUND_SERVICE)}; clicked points "
+            f"{self.topics['clicked_point']}; "
             f"features {'on' if p.features else 'off'}")
 
     def _make_services(self) -> None:
@@ -105,11 +109,7 @@ class GroundingNode(CameraInput, TFInput, NodeOutputs, Node):
         short = query[:60] + ("..." if len(query) > 60 else "")
         if result.success:
             log.info(f"ground '{short}': {result.message} ({time.perf_counter() - t:.2f} s)")
-            with self._state_lock:
-                self._last_result = result
-            self.pub_grounded.publish(response.cloud)
-            self.pub_markers.publish(result_markers(result, p.map_frame, stamp, box_alpha=p.marker_alpha))
-            self._on_masks()
+            self._publish_answer(result, response.cloud, stamp)
         else:
             log.warning(f"ground '{short}' failed: {result.message}")
         if "graph" in result.timings:   # the answer built or used the scene graph: publish it if new

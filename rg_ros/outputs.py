@@ -62,6 +62,18 @@ class NodeOutputs:
             self._graph_sent = None
         self.pub_graph_markers.publish(graph_markers([], np.array([0.0, 0.0, 1.0]), self.p.map_frame, self._stamp_now()))
 
+    def _publish_answer(self, result: GroundingResult, cloud=None, stamp=None) -> None:
+        """Make `result` (a /ground, clicked-point or teach answer) the current answer: its grounded
+        cloud and markers (latched) now, its masks on the current camera now and at mask_rate."""
+        stamp = stamp if stamp is not None else self._stamp_now()
+        if cloud is None:
+            cloud = cv.result_to_response(result, self.p.map_frame, stamp).cloud
+        with self._state_lock:
+            self._last_result = result
+        self.pub_grounded.publish(cloud)
+        self.pub_markers.publish(result_markers(result, self.p.map_frame, stamp, box_alpha=self.p.marker_alpha))
+        self._on_masks()
+
     def _on_masks(self) -> None:
         with self._state_lock:
             result, cam = self._last_result, self._camera
@@ -111,6 +123,8 @@ class NodeOutputs:
         st["pose_source"] = self.p.pose_source
         st["tf_dropped"] = self.tf_dropped
         st["tf_waiting"] = len(self._tf_pending)
+        st["clicks"] = dict(getattr(self, "clicks", {}))   # clicked points answered / refused (teaching.py)
+        st["taught"] = self.worker.taught_names()
         return st
 
     def _on_status(self) -> None:

@@ -80,6 +80,7 @@ def _from(cls: type, name: str):
 INPUTS = {"rgb/image": "/camera/color/image_raw", "depth/image": "/camera/aligned_depth_to_color/image_raw",
           "rgb/camera_info": "/camera/color/camera_info", "pose": "/camera/pose", "odom": "/odom"}
 GROUND_SERVICE = "ground"
+CLICKED_POINT_TOPIC = "clicked_point"   # RViz's Publish Point tool publishes /clicked_point (a PointStamped)
 DIAGNOSTICS_TOPIC = "/diagnostics"   # diagnostic_updater's absolute name (remappable like any other)
 TRANSPORTS = {"color_transport": ("raw", "compressed"), "depth_transport": ("raw", "compressedDepth")}
 

@@ -32,13 +32,14 @@ from rg_core.map.mapper import Mapper
 from .frame_queue import Frame, FrameQueue
 from .idle_work import IdleWork
 from .params import WorkerConfig
+from .worker_teach import TeachWork
 
 log = logging.getLogger("rg_ros.worker")
 
 
-class MapWorker(IdleWork):
+class MapWorker(TeachWork, IdleWork):
     """The mapping thread, its frame queue and the map lock; the services' side (reset, save,
-    ground, scene graph, masks, snapshots, stats)."""
+    ground, scene graph, masks, snapshots, stats; point answers, teach and forget: worker_teach.py)."""
 
     def __init__(self, cfg: RGConfig | None = None, wcfg: WorkerConfig | None = None, mapper: Mapper | None = None,
                  logger: logging.Logger | None = None,

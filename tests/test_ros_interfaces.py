@@ -122,6 +122,32 @@ def test_result_to_response_survives_serialization():
     check_response(res, result)
 
 
+def test_teach_and_forget_services_survive_serialization():
+    """Teach.srv / Forget.srv (point and teach, rg_ros/teaching.py): the request's PointStamped and
+    flag, the answer's fields (the same conversion as Ground's), the taught names."""
+    from rg_interfaces.srv import Forget, Teach
+
+    req = Teach.Request(name="blue mug", use_current_answer=False)
+    req.point.header.frame_id, req.point.point.x, req.point.point.z = "table", 0.25, -1.5
+    req = deserialize_message(serialize_message(req), Teach.Request)
+    assert (req.name, req.point.header.frame_id, req.point.point.x, req.point.point.z) == ("blue mug", "table", 0.25, -1.5)
+    assert req.use_current_answer is False and Teach.Request(use_current_answer=True).use_current_answer
+    result = make_result("blue mug")
+    res = cv.answer_fields(result, "map", 7.5, Teach.Response())
+    res.name, res.taught = "blue mug", ["blue mug", "lemon"]
+    res = deserialize_message(serialize_message(res), Teach.Response)
+    assert res.success and res.message == result.message and res.name == "blue mug"
+    assert res.explanation == result.explanation and res.confidence == pytest.approx(0.75)
+    assert len(res.objects) == 2 and res.objects[0].gaussian_count == 40 and list(res.taught) == ["blue mug", "lemon"]
+    pts, _ = from_pointcloud2(res.cloud)
+    np.testing.assert_array_equal(pts, np.concatenate([o.points for o in result.objects]))
+    assert not hasattr(res, "stage_names") and not hasattr(res, "target")
+    f = Forget.Response(success=True, message="forgot 1", forgotten=1, taught=["lemon"])
+    f = deserialize_message(serialize_message(f), Forget.Response)
+    assert f.success and f.forgotten == 1 and list(f.taught) == ["lemon"]
+    assert deserialize_message(serialize_message(Forget.Request(name="my mug")), Forget.Request).name == "my mug"
+
+
 def test_abstained_answer_keeps_its_best_guess():
     """An answer below the confidence threshold: success false and why, and the best guess's objects
     and cloud for a client that wants to look at it."""
