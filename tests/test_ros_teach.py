@@ -180,6 +180,37 @@ def test_rviz_publish_point_tool_reaches_the_node():
     assert tools and tools[0]["Topic"]["Value"] == "/" + CLICKED_POINT_TOPIC
 
 
+def test_points_are_transformed_into_the_map_frame():
+    """Teaching._to_map with the node's TF buffer: at the point's stamp (interpolated), the latest
+    transform for a click stamped after it, and the reason when no transform can be found."""
+    from types import SimpleNamespace
+
+    from rg_core.geometry.tf_buffer import TFBuffer
+    from rg_ros import convert as cv
+    from rg_ros.teaching import FrameProblem, Teaching
+
+    tf = TFBuffer()
+    for t, x in ((1.0, 0.0), (2.0, 1.0)):
+        tf.set_transform("map", "odom", t, [x, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])
+    node = SimpleNamespace(tf=tf, p=SimpleNamespace(map_frame="map"))
+
+    def point(frame, stamp, xyz=(0.0, 0.5, 0.25)):
+        m = PointStamped()
+        m.header.frame_id, m.header.stamp = frame, cv.to_time(stamp)
+        m.point.x, m.point.y, m.point.z = xyz
+        return m
+
+    np.testing.assert_allclose(Teaching._to_map(node, point("odom", 1.5)), [0.5, 0.5, 0.25])
+    np.testing.assert_allclose(Teaching._to_map(node, point("odom", 9.0)), [1.0, 0.5, 0.25])   # the latest
+    np.testing.assert_allclose(Teaching._to_map(node, point("/map", 0.0)), [0.0, 0.5, 0.25])
+    with pytest.raises(FrameProblem, match="no transform is known from the point's frame 'base' to the map frame 'map'"):
+        Teaching._to_map(node, point("base", 1.5))
+    with pytest.raises(FrameProblem, match="no frame_id"):
+        Teaching._to_map(node, point("", 1.5))
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        Teaching._to_map(node, point("odom", 1.5, (float("inf"), 0.0, 0.0)))
+
+
 # ------------------------------------------------------------------------------ in order
 
 def test_teaching_an_empty_map_is_refused(h):
