@@ -133,3 +133,30 @@ def grounder(oracle_field, synth_scene):
     field, embed = oracle_field
     return Grounder(field.mapper, field, RGConfig(), reasoner=TextReasoner(), text_encoder=embed,
                     scene_names=[o.name for o in synth_scene.objects])
+
+
+@pytest.fixture(scope="session")
+def minilm_map_file(synth_scene, tmp_path_factory) -> Path:
+    """The session scene mapped at 160 px with ground-truth masks named in MiniLM's space (what
+    `rg ground` and `rg teach` embed queries with) and a field trained 200 steps, saved to a file:
+    tests load their own copy (teaching changes a map)."""
+    import torch
+
+    from rg_core.config import FieldConfig, MapConfig
+    from rg_core.field import FeatureField
+    from rg_core.field.oracle import oracle_supervision
+    from rg_core.map.mapper import Mapper
+    from rg_core.map.run import stream_frames
+    from rg_core.map.store import save_map
+    from rg_core.perception.embed import MiniLMText
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        mapper = Mapper(MapConfig(width=160, iters_per_keyframe=5, final_iters=0, seed_stride=2))
+        stream_frames(mapper, synth_scene.train, progress=False)
+        oracle_supervision(mapper, synth_scene.train, synth_scene.objects, MiniLMText())
+        FeatureField(mapper, FieldConfig()).train(iters=200)
+    finally:
+        torch.set_num_threads(n)
+    return save_map(mapper, tmp_path_factory.mktemp("minilm") / "scene.rgmap")

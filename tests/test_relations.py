@@ -103,7 +103,7 @@ def test_graph_holds_each_object_once(grounder, synth_scene):
 
 
 def test_an_objects_colour_comes_from_every_keyframe_that_sees_it(grounder, synth_scene):
-    from rg_core.grounding.relations import observed_pixels
+    from rg_core.grounding.appearance import observed_pixels
 
     m = grounder.mapper
     o = next(o for o in grounder.scene_graph() if o.name in _centres(synth_scene))

@@ -156,7 +156,7 @@ def test_the_querys_own_name_the_graph_lacks_is_grounded_and_a_colour_word_helps
     graph = list(DEMO)
     g = FakeGrounder(["lemon", "orange", "coffee mug", "correction fluid"],
                      {"cup": _result(cup, 0.07, success=False), "orange cup": _result(cup, 0.93)})
-    monkeypatch.setattr(relations, "_colour", lambda g, o: "orange")
+    monkeypatch.setattr(relations, "object_colour", lambda g, o: "orange")
     out = with_query_names(g, parse("how many cups are there"), graph)
     assert g.asked == ["cup", "orange cup"] and [id(o) for o in graph] == [id(o) for o in DEMO]
     assert [o.name for o in out] == ["lemon", "coffee mug", "correction fluid", "orange cup"] and out[-1].colour == "orange"

@@ -223,8 +223,13 @@ def replay_scene(h) -> dict:
 
 
 def test_replayed_frames_build_the_map(h):
-    st = replay_scene(h)
-    assert st["frames"] >= 3 and st["gaussians"] > 0 and st["queue_size"] == 2
+    replay_scene(h)
+    st = h.fresh_status(settled=True)
+    # Sensor QoS is best effort: how many replayed frames arrive, and how many a busy machine drops
+    # from the 2-frame queue, is up to DDS and the load. What the node guarantees: every frame it
+    # received is mapped, rejected or dropped and counted, and the map holds what it mapped.
+    assert st["frames"] >= 1 and st["gaussians"] > 0 and st["queue_size"] == 2
+    assert st["mapped"] + st["dropped"] + st["rejected"] == st["received"] >= st["frames"]
     assert st["rejected"] == 0 and set(st["input_errors"]) <= {"queue_drop"}   # mapping may lag the replay
 
 

@@ -176,6 +176,12 @@ class FeatureField:
         self._follow_pca(sset.pca)
         return None
 
+    def follow_supervision(self) -> None:
+        """Follow a changed supervision now (a PCA refit, relabelled masks): queries read the
+        language output in the map's current basis before the next training step."""
+        with self.lock:
+            self._refresh_supervision()
+
     @torch.no_grad()
     def _follow_pca(self, ipca) -> None:
         """Re-express the language output layer in a refitted basis: z' = C'(C^T z + mu - mu')."""

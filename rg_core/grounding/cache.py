@@ -4,7 +4,8 @@ from changes.
 Each table has a scope, the state it is made from:
 - "map": the Gaussians (identity and in-place version of their tensors, their count), the field
   and the supervision: renders, clusters over the whole map, spacing, background, scene graph;
-- "supervision": the keyframes and their masks, embeddings and PCA basis: vocabulary, up
+- "supervision": the keyframes and their masks, embeddings and PCA basis, and what was taught
+  (map/taught.py): vocabulary, up
   direction, registration border; a map that grows or is refined keeps them;
 - "field": the field's rows (its revision: training, pruning, a scale or PCA refit): clusters of
   one region, keyed by the Gaussians in it, which the map growing elsewhere leaves valid.
@@ -40,12 +41,13 @@ class MapCache:
     keeps nothing (the uncached baseline and its tests)."""
 
     SCOPE = {"groups": "map", "renders": "map", "spacing": "map", "background": "map", "graph": "map",
-             "vocabulary": "supervision", "border": "supervision", "up": "supervision", "clusters": "field"}
+             "vocabulary": "supervision", "border": "supervision", "up": "supervision", "clusters": "field",
+             "taught": "map"}
 
     def __init__(self, enabled: bool = True, sizes: dict[str, int] | None = None):
         self.enabled = enabled
         self.sizes = {"groups": 16, "clusters": 16, "renders": 8, "spacing": 1, "border": 1, "vocabulary": 1,
-                      "background": 8, "graph": 1, "up": 1, **(sizes or {})}
+                      "background": 8, "graph": 1, "up": 1, "taught": 64, **(sizes or {})}
         self.tables: dict[str, OrderedDict] = {k: OrderedDict() for k in self.sizes}
         self._states: dict[str, tuple[TensorState, tuple]] = {}
         self.hits = self.misses = self.invalidations = 0
@@ -91,9 +93,12 @@ def map_scopes(mapper, field) -> dict[str, tuple[tuple, tuple]]:
     m, f = mapper, field
     g = m.gaussians
     sset = m.supervision
-    sup = (len(m.keyframes), m.keyframes[-1].index if m.keyframes else -1, id(sset))
+    taught = getattr(m, "taught", None)
+    sup = (len(m.keyframes), m.keyframes[-1].index if m.keyframes else -1, id(sset),
+           taught.version if taught is not None else 0)
     if sset is not None:
         sup += (len(sset.by_keyframe), sum(len(s.embeddings) for s in sset.by_keyframe.values()),
+                tuple(id(s) for s in sset.by_keyframe.values()),
                 getattr(sset.pca, "version", None), id(sset.pca.pca))
     tensors = (g.means, g.log_scales, g.quats, g.opacity_logits)
     rows: tuple = ()

@@ -53,15 +53,18 @@ def scene_image(g, max_views: int = 4) -> np.ndarray:
 
 
 def vocabulary(g) -> list[str]:
-    """The names a reasoner may pick from (vocabulary.build_vocabulary), cached with the supervision."""
+    """The names a reasoner may pick from (vocabulary.build_vocabulary; taught names first), cached
+    with the supervision."""
     g._check_cache()
     sset = g.mapper.supervision
     n_masks = sum(len(s.embeddings) for s in sset.by_keyframe.values()) if sset is not None else 0
-    key = (n_masks, tuple(g.scene_names), tuple(g.gcfg.vocabulary), bool(g.gcfg.support_vocabulary))
+    taught = g.mapper.taught.names() if getattr(g.mapper, "taught", None) is not None else []
+    key = (n_masks, tuple(taught), tuple(g.scene_names), tuple(g.gcfg.vocabulary), bool(g.gcfg.support_vocabulary))
 
-    def make():
+    def make():   # taught names first: a person's word (grounding/teach.py)
         emb = torch.cat([s.embeddings for s in sset.by_keyframe.values()]) if n_masks else torch.zeros(0, 1)
-        return build_vocabulary(g.scene_names, g.gcfg.vocabulary, emb, g.encode, g.gcfg.support_vocabulary)
+        return build_vocabulary(taught + list(g.scene_names), g.gcfg.vocabulary, emb, g.encode,
+                                g.gcfg.support_vocabulary)
     return list(g.cache.get("vocabulary", key, make))
 
 

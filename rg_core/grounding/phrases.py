@@ -146,6 +146,18 @@ def _categories() -> frozenset[str]:
     return frozenset(hyp | {h.split()[-1] for h in hyp})
 
 
+POSSESSIVES = ("my", "our", "your", "his", "her", "their", "the", "this", "that", "a", "an", "these", "those")
+
+
+def core_name(name: str) -> str:
+    """Without case, leading possessives or articles and a plural: what spellings of one name
+    share ("My Mugs" -> "mug")."""
+    words = str(name).lower().replace("'s ", " ").split()
+    while len(words) > 1 and words[0] in POSSESSIVES:
+        words.pop(0)
+    return _singular(" ".join(words)) if words else ""
+
+
 def _relation(text: str) -> Relational | None:
     """'cups (that are) next to the laptop' -> Relational, or None."""
     m = re.fullmatch(r"(?P<t>.+?) (?:(?:that|which) )?(?:(?:is|are|sits|sit|lies|lie|stands|stand|rests|rest)"

@@ -17,7 +17,7 @@ import torch
 from ..config import RGConfig
 from ..field.converge import describe
 from ..util import torch_threads
-from . import confidence, derived, phrases, relations, stages
+from . import confidence, derived, phrases, relations, stages, teach
 from .cache import MapCache, map_scopes
 from .grouping import Groups
 from .masks import result_masks
@@ -210,6 +210,11 @@ class Grounder:
         if not_ready:
             return GroundingResult(False, not_ready, query=query)
         self._check_cache()
+        if len(self.mapper.taught):   # a person's names first (teach.py)
+            taught = teach.answer_query(self, query, max_results)
+            if taught is not None:
+                taught.timings = {"total": time.perf_counter() - t0}
+                return taught
         name = phrases.bare_name(query, self.vocabulary())
         if name is not None and name != query:   # "the orange cup, please": that name, the usual path
             res = self._ground(name, mode, max_results, view)
@@ -236,6 +241,10 @@ class Grounder:
 
         r = self._reason(query, mode)
         t["reason"] = time.perf_counter() - t0   # from the start: validation is part of it
+        taught = teach.answer(self, r.target, max_results, r.explanation) if r.target else None
+        if taught is not None:   # the reasoner picked a taught name (or a variant: 'mug' for 'blue mug')
+            taught.query, taught.timings = query, {**t, "total": time.perf_counter() - t0}
+            return taught
         res.target, res.explanation = r.target, r.explanation
         if not r.target:
             res.message = f"nothing in the map matches {query!r}: {r.explanation}"

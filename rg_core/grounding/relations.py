@@ -16,9 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..perception.colour_names import COLOUR_TERMS, colour_term
+from ..perception.colour_names import COLOUR_TERMS
+from .appearance import object_colour
 from .boxes import robust_inliers
-from .phrases import Relational, _nth, _singular, is_thing_name
+from .phrases import Relational, _nth, _singular, core_name, is_thing_name
 from .result import GroundedObject, GroundingResult
 
 NEAR_GAP = 0.10        # metres between two objects' boxes that still count as near (counting, "all")
@@ -65,11 +66,23 @@ class SceneObject:
 
 
 def build_graph(g, names: list[str]) -> list[SceneObject]:
-    """Ground every name once (explicit), merge answers sharing their Gaussians."""
+    """The taught objects first (each its own, a person's name first among its names), then every
+    other name grounded once (explicit), answers sharing their Gaussians merged."""
+    from . import teach
+
     objs: list[SceneObject] = []
+    for t in g.mapper.taught:
+        try:
+            o = teach.resolve(g, t)
+        except ValueError:
+            continue
+        _add(g, objs, t.name, GroundingResult(True, "", target=t.name, confidence=teach.TAUGHT_CONFIDENCE, objects=[o]))
+    taught = {core_name(n) for n in g.mapper.taught.names()}
     for name in dict.fromkeys(names):
-        _add(g, objs, name, g._ground(name, "explicit", 1))
-    return objs
+        if core_name(name) not in taught:
+            _add(g, objs, name, g._ground(name, "explicit", 1))
+    return [SceneObject(sorted(o.names, key=lambda nc: (core_name(nc[0]) not in taught, -nc[1])), o.obj, o.colour)
+            for o in objs] if taught else objs
 
 
 def _add(g, objs: list[SceneObject], name: str, res: GroundingResult) -> bool:
@@ -86,18 +99,8 @@ def _add(g, objs: list[SceneObject], name: str, res: GroundingResult) -> bool:
         s = objs[home]
         objs[home] = SceneObject(sorted(s.names + [(name, float(res.confidence))], key=lambda nc: -nc[1]), s.obj, s.colour)
     else:
-        objs.append(SceneObject([(name, float(res.confidence))], o, _colour(g, o)))
+        objs.append(SceneObject([(name, float(res.confidence))], o, object_colour(g, o)))
     return True
-
-
-def _colour(g, o: GroundedObject) -> str:
-    """The basic colour term of what the keyframes saw of the object's robust core ("" if nothing)."""
-    gs = g.mapper.gaussians
-    keep = o.gaussian_ids[robust_inliers(gs.means.detach().numpy()[o.gaussian_ids])]
-    px = observed_pixels(g.mapper, gs.means.detach().numpy()[keep])
-    if not len(px) and len(keep):   # seen in no keyframe (occluded everywhere): the Gaussians' own colours
-        px = (gs.colors.detach()[keep].clamp(0, 1) * 255).round().byte().numpy()
-    return colour_term(px) if len(px) else ""
 
 
 def with_query_names(g, rq: Relational, objs: list[SceneObject]) -> list[SceneObject]:
@@ -115,35 +118,10 @@ def with_query_names(g, rq: Relational, objs: list[SceneObject]) -> list[SceneOb
     for name in names:
         res = g._ground(name, "explicit", 1)
         if not _add(g, objs, name, res) and res.objects and colours:
-            c = (_colour(g, res.objects[0]).split() or [""])[-1]
+            c = (object_colour(g, res.objects[0]).split() or [""])[-1]
             if c in colours and not name.startswith(c + " "):
                 _add(g, objs, f"{c} {name}", g._ground(f"{c} {name}", "explicit", 1))
     return objs
-
-
-def observed_pixels(mapper, points: np.ndarray, tol: float = 0.02, max_pixels: int = 20000) -> np.ndarray:
-    """The keyframe pixels (uint8 [M, 3]) where `points` [N, 3] are seen: projected into every
-    keyframe, kept where the keyframe's depth agrees within tol + 2 % (not occluded); from every
-    keyframe that sees them (an object's colour is what the camera saw of it from all sides; the
-    Gaussians' own colours are a fit that blends neighbours and the background), evenly thinned to
-    at most max_pixels."""
-    from ..geometry.conventions import in_image, project
-
-    if not len(points):
-        return np.zeros((0, 3), np.uint8)
-    seen = []
-    for kf in mapper.keyframes:
-        w, h = kf.size
-        uv, z = project(np.asarray(points, np.float64), np.asarray(kf.K, np.float64), kf.cam_to_world)
-        ok = in_image(uv, z, w, h)
-        u, v = np.round(uv[ok]).astype(int).T
-        d = kf.depth.numpy()[v, u]
-        vis = (d > 0) & (np.abs(d - z[ok]) <= tol + 0.02 * z[ok])
-        if vis.any():
-            seen.append(kf.rgb.numpy()[v[vis], u[vis]])
-    px = np.concatenate(seen) if seen else np.zeros((0, 3), np.float32)
-    px = px[:: max(1, -(-len(px) // max_pixels))]
-    return (np.clip(px, 0, 1) * 255).round().astype(np.uint8)
 
 
 def _is_a(n: str, name: str) -> bool:
@@ -151,7 +129,7 @@ def _is_a(n: str, name: str) -> bool:
     its WordNet hypernyms is ("banana": edible fruit, so a fruit; "hammer": hand tool, so a tool)."""
     from ..perception.knowledge import KnowledgeError, load_knowledge
 
-    n = _singular(n)
+    n = core_name(n)
     if n == name or n.endswith(" " + name):
         return True
     try:
@@ -171,8 +149,8 @@ def for_graph(rq: Relational, objs: list[SceneObject], vocabulary=()) -> bool:
 
 
 def _match(objs: list[SceneObject], name: str, colour: str = "") -> list[SceneObject]:
-    """Objects that are a `name` (_is_a) and, when given, of that colour."""
-    name = _singular(name)
+    """Objects that are a `name` (_is_a; "my mug" is a mug) and, when given, of that colour."""
+    name = core_name(name)
     out = [o for o in objs if not name or any(_is_a(n, name) for n, _ in o.names)]
     if colour:
         out = [o for o in out if o.colour.split()[-1] == colour or colour in o.name.split()]

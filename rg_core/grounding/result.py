@@ -40,10 +40,12 @@ class GroundingResult:
     reference_view: int = -1           # keyframe index used as the reference view
     scale: float = 0.0                 # physical scale s* (m) the groups were formed at
     evidence: dict[str, float] = field(default_factory=dict)   # what the confidence is made of
+    names: list[tuple[str, float]] = field(default_factory=list)  # point answers: what the map thinks it is
 
     def to_json(self) -> dict:
         return {"success": self.success, "message": self.message, "query": self.query, "target": self.target,
                 "explanation": self.explanation, "confidence": float(self.confidence),
                 "reference_view": int(self.reference_view), "scale": float(self.scale), "objects": [o.to_json() for o in self.objects],
                 "timings": {k: float(v) for k, v in self.timings.items()},
-                "evidence": {k: float(v) for k, v in self.evidence.items()}}
+                "evidence": {k: float(v) for k, v in self.evidence.items()},
+                **({"names": [[n, float(v)] for n, v in self.names]} if self.names else {})}

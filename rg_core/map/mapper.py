@@ -21,6 +21,7 @@ from .frames import PreparedFrame, prepare_frame
 from .gaussians import GaussianModel, ResizableAdam
 from .keyframes import Keyframe, keyframe_reason, most_redundant, same_view
 from .removal import eviction_order, protected_box, prune_keep
+from .taught import TaughtSet
 from .seeding import back_project, coarse_gaussians, detail_pixels, local_range, seed_candidates
 
 log = logging.getLogger(__name__)
@@ -59,6 +60,7 @@ class Mapper:
         self.seconds = {"prepare": 0.0, "check": 0.0, "seed": 0.0, "optimise": 0.0, "prune": 0.0, "refine": 0.0}
         self._rng = torch.Generator().manual_seed(self.cfg.seed)
         self.supervision = None  # perception.supervision.SupervisionSet, once computed
+        self.taught = TaughtSet()  # objects people named (grounding/teach.py); eviction keeps them
 
     # ------------------------------------------------------------------------------ rendering
 
@@ -321,12 +323,13 @@ class Mapper:
     @torch.no_grad()
     def evict(self, n: int, K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int) -> int:
         """Remove up to `n` Gaussians the camera (K [3, 3], cam_to_world [4, 4], image size) does not
-        see, the least useful first (removal.eviction_order); Gaussians in view and in protected
-        boxes stay. Returns how many went."""
+        see, the least useful first (removal.eviction_order); Gaussians in view, in protected
+        boxes and in taught objects' boxes stay. Returns how many went."""
         g = self.gaussians
         if n <= 0 or not len(g):
             return 0
-        order = eviction_order(g, n, K, cam_to_world, width, height, self.cfg.near, self.protected)
+        order = eviction_order(g, n, K, cam_to_world, width, height, self.cfg.near,
+                               self.protected + self.taught.boxes())
         if not len(order):
             return 0
         keep = torch.ones(len(g), dtype=torch.bool)

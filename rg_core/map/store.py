@@ -2,7 +2,8 @@
 
 Holds the Gaussians, the configuration and, per keyframe, pose, intrinsics, stamp and the
 working-resolution image (uint8) and depth (float32 m), which the feature and grounding stages use;
-since version 2 also the feature field (`mapper.field`: latents, mappers, scale transform, config).
+since version 2 also the feature field (`mapper.field`: latents, mappers, scale transform, config),
+since version 3 what people taught it (`mapper.taught`, map/taught.py).
 """
 from __future__ import annotations
 
@@ -14,10 +15,11 @@ import torch
 from ..config import ConfigError, MapConfig, config_from_dict, config_to_dict
 from .keyframes import Keyframe
 from .mapper import Mapper
+from .taught import TaughtSet
 
 FORMAT = "rg-map"
-VERSION = 2
-READABLE = (1, 2)  # version 1: no "field" entry (read as None)
+VERSION = 3
+READABLE = (1, 2, 3)  # version 1: no "field" entry (read as None); before 3: nothing taught
 
 
 class MapFileError(ValueError):
@@ -46,10 +48,15 @@ def save_map(mapper: Mapper, path: str | Path) -> Path:
         "supervision": mapper.supervision.state_dict() if mapper.supervision is not None else None,
         # The feature field (rg_core.field.FeatureField attaches itself as mapper.field); None until built.
         "field": mapper.field.state_dict() if getattr(mapper, "field", None) is not None else None,
+        "taught": mapper.taught.state_dict(),
     }
     tmp = path.with_name(path.name + ".tmp")
-    torch.save(data, tmp)
-    tmp.replace(path)  # never leave a half-written map behind
+    try:
+        torch.save(data, tmp)
+        tmp.replace(path)  # never leave a half-written map behind
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return path
 
 
@@ -87,6 +94,10 @@ def load_map(path: str | Path) -> Mapper:
             mapper.supervision = SupervisionSet.from_state_dict(data["supervision"])
         except (KeyError, ValueError, TypeError) as exc:
             raise MapFileError(f"{path}: bad supervision data ({exc})") from exc
+    try:
+        mapper.taught = TaughtSet.from_state_dict(data.get("taught"))
+    except (KeyError, ValueError, TypeError, AttributeError) as exc:
+        raise MapFileError(f"{path}: bad taught objects ({exc})") from exc
     stats = data.get("stats", {})
     mapper.frames_seen = int(stats.get("frames", len(mapper.keyframes)))
     for k in mapper.totals:

@@ -28,6 +28,12 @@ class KeyframeSupervision:
     own: np.ndarray | None = None  # [M] bool: masks with their own embedding (None: all); the others
                                    # take their object's multi-view mean (supervise_map_multiview)
 
+    # What people taught (grounding/teach.py): per mask the taught name ("" = the model's label),
+    # the model's own embeddings to restore, and which masks teaching added. None: nothing taught.
+    taught: np.ndarray | None = None   # [M] object (str)
+    model: torch.Tensor | None = None  # [M, D]
+    added: np.ndarray | None = None    # [M] bool
+
     def owned(self) -> np.ndarray:  # [M] bool
         return np.ones(len(self.scales), bool) if self.own is None else self.own
 
@@ -38,7 +44,9 @@ class KeyframeSupervision:
                 "scales": torch.from_numpy(self.scales), "embeddings": self.embeddings.float(),
                 "seconds": {k: float(v) for k, v in self.seconds.items()}, "dropped": int(self.dropped),
                 "embeddings_view": self.embeddings_view.float() if self.embeddings_view is not None else None,
-                "own": torch.from_numpy(self.own.copy()) if self.own is not None else None}
+                "own": torch.from_numpy(self.own.copy()) if self.own is not None else None,
+                **({"taught": [str(n) for n in self.taught], "model": self.model.float(),
+                    "added": torch.from_numpy(self.added.copy())} if self.taught is not None else {})}
 
     @staticmethod
     def from_state_dict(d: dict) -> "KeyframeSupervision":
@@ -47,7 +55,10 @@ class KeyframeSupervision:
         return KeyframeSupervision(masks, d["scores"].numpy(), d["levels"].numpy(), d["scales"].numpy(),
                                    d["embeddings"].float(), dict(d.get("seconds", {})), int(d.get("dropped", 0)),
                                    d["embeddings_view"].float() if d.get("embeddings_view") is not None else None,
-                                   d["own"].numpy().astype(bool) if d.get("own") is not None else None)
+                                   d["own"].numpy().astype(bool) if d.get("own") is not None else None,
+                                   np.array(list(d["taught"]), dtype=object) if d.get("taught") is not None else None,
+                                   d["model"].float() if d.get("taught") is not None else None,
+                                   d["added"].numpy().astype(bool) if d.get("taught") is not None else None)
 
 
 def build_supervision(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, generator: MaskGenerator,
@@ -115,6 +126,8 @@ class SupervisionSet:
         # MiniLM embeddings of the texts a query on this map needs besides the query itself (names,
         # canonical phrases): stored with the map so a new process need not load the text model.
         self.text_embeddings: dict[str, torch.Tensor] = {}
+        # (taught version, supervised keyframes) the taught labels were last applied for (teach.refresh)
+        self.taught_state: tuple | None = None
 
     def add(self, keyframe_index: int, sup: KeyframeSupervision) -> bool:
         """Store a keyframe's supervision; returns True when the PCA basis was refitted (callers
@@ -156,6 +169,8 @@ class SupervisionSet:
         return {"keyframes": {str(k): s.state_dict() for k, s in self.by_keyframe.items()},
                 "pca": self.pca.pca.state_dict() if self.pca.pca is not None else None, "pca_dim": self.pca.k,
                 "pca_version": self.pca.version, "source": self.source,
+                "taught_state": [int(self.taught_state[0]), [int(k) for k in self.taught_state[1]]]
+                if self.taught_state is not None else None,
                 "text_embeddings": {"model": TEXT_MODEL, "texts": list(self.text_embeddings),
                                     "embeddings": torch.stack(list(self.text_embeddings.values())).float()}
                 if self.text_embeddings else None}
@@ -171,6 +186,8 @@ class SupervisionSet:
         if d.get("pca") is not None:
             s.pca.pca = PCA.from_state_dict(d["pca"])
             s.pca.version = int(d.get("pca_version", 1))
+        ts = d.get("taught_state")
+        s.taught_state = (int(ts[0]), tuple(int(k) for k in ts[1])) if ts is not None else None
         te = d.get("text_embeddings")
         if te is not None and te.get("model") == TEXT_MODEL:
             texts, emb = list(te["texts"]), te["embeddings"]

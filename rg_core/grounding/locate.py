@@ -1,0 +1,176 @@
+"""Where an object is: the Gaussian group of the object at a 3D point of the map, the lowest layer
+of point and teach (point.py answers with it, teach.py finds taught objects again with it).
+
+The scale rule (docs/pipeline.md, "Point and teach"): the keyframes that see the point (their depth
+agrees with it) each give the supervision mask holding its pixel that is the whole object (the
+largest at the group level, cut at depth jumps, unless it spans more than twice the object level's
+scale: objects that touch, then the object level's), and the object's scale s is the median of
+those masks' physical scales; with no keyframe seeing the point, the median scale of the map's
+object-level masks. The group is the cluster of instance features at s holding the feature of the
+Gaussian nearest the point, voted on by those masks (seen outside them more often than inside:
+carved; inside several: joined), then by the masks of every view that sees the group so far, and
+cut to its piece in space around the point.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..geometry.conventions import in_image, project
+from ..geometry.points import nearest, within
+from .boxes import connected_to, group_boxes, robust_inliers
+from .carve import mask_votes
+from .result import GroundedObject
+from .stages import keyframe_view
+
+NEAR_RADIUS = 0.05     # m: a point farther than this from every Gaussian holds nothing mapped
+REACH, MIN_REACH = 4.0, 0.08   # the object's Gaussians lie within max(REACH x s, MIN_REACH) m of the point
+VOTE_ROUNDS = 3        # votes by the point's views, then twice by the views that see the group
+TOUCHING = 2.0         # a group-level mask this many times the object level's scale holds several objects
+
+
+def check_point(point) -> np.ndarray:
+    """[3] float64, or ValueError saying what is wrong."""
+    p = np.asarray(point, np.float64).reshape(-1) if np.size(point) else np.zeros(0)
+    if p.shape != (3,):
+        raise ValueError(f"a point has 3 coordinates (x, y, z in the map frame), got {np.size(point)}")
+    if not np.isfinite(p).all():
+        raise ValueError(f"the point ({', '.join(f'{v:g}' for v in p)}) has NaN or infinite coordinates: "
+                         "give finite x, y, z in metres")
+    return p
+
+
+def covering_masks(g, point: np.ndarray) -> list[tuple[object, int, int, float]]:
+    """(keyframe, mask index, level, scale) per keyframe that sees `point` [3]: its supervision mask
+    that is the whole object at the point's pixel (_object_mask)."""
+    sset = g.mapper.supervision
+    out = []
+    for kf in g.mapper.keyframes:
+        sup = sset.by_keyframe.get(kf.index) if sset is not None else None
+        if sup is None or not len(sup.scales):
+            continue
+        w, h = kf.size
+        uv, z = project(point[None], np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64))
+        if not in_image(uv, z, w, h)[0]:
+            continue
+        u, v = (int(x) for x in np.round(uv[0]))
+        d = float(kf.depth[v, u])
+        if not (d > 0 and abs(d - float(z[0])) <= float(g.mapper.depth_tolerance(torch.tensor(d)))):
+            continue   # hidden in this view, or no reading: it cannot say what is there
+        hold = np.flatnonzero(sup.masks[:, v, u]) if sup.masks.shape[1:] == (h, w) else np.zeros(0, np.int64)
+        if not len(hold):
+            continue
+        out.append((kf, *_object_mask(sup, hold)))
+    return out
+
+
+def _object_mask(sup, hold: np.ndarray) -> tuple[int, int, float]:
+    """(index, level, scale) of the mask among `hold` (a pixel's masks) that is its whole object:
+    the largest of the group level (2: cut at depth jumps), unless it spans more than
+    TOUCHING x the object level's (1) scale (objects that touch), then the largest of level 1,
+    else the largest of any level."""
+    by = {lv: max((j for j in hold if int(sup.levels[j]) == lv), key=lambda j: int(sup.masks[j].sum()), default=None)
+          for lv in (2, 1, 0)}
+    i = by[2]
+    if i is None or (by[1] is not None and sup.scales[i] > TOUCHING * sup.scales[by[1]]):
+        i = by[1]
+    if i is None:
+        i = max(hold, key=lambda j: int(sup.masks[j].sum()))
+    return int(i), int(sup.levels[i]), float(sup.scales[i])
+
+
+def object_views(g, points: np.ndarray, sizes: np.ndarray, min_seen: int = 5) -> list:
+    """MaskViews of the object whose Gaussians are `points` [n, 3] (sizes [n] m): in each keyframe
+    that sees at least `min_seen` of them, its whole-object mask (_object_mask) among the masks
+    holding at least half of the seen ones."""
+    from .carve import sight
+
+    sset = g.mapper.supervision
+    kfs = [kf for kf in g.mapper.keyframes if sset is not None and kf.index in sset.by_keyframe
+           and sset.by_keyframe[kf.index].masks.shape[1:] == tuple(kf.depth.shape)]
+    if not kfs or not len(points):
+        return []
+    on, seen, rows, cols = sight(points, np.stack([np.asarray(k.K, np.float64) for k in kfs]),
+                                 np.stack([np.asarray(k.cam_to_world, np.float64) for k in kfs]),
+                                 [k.depth.numpy() for k in kfs], 1.5 * np.asarray(sizes, np.float64))
+    out = []
+    for kf, s_, r, u in zip(kfs, seen, rows, cols):
+        if int(s_.sum()) < min_seen:
+            continue
+        sup = sset.by_keyframe[kf.index]
+        share = sup.masks[:, r[s_], u[s_]].mean(1)                              # [M]
+        hold = np.flatnonzero(share >= 0.5)
+        if len(hold):
+            out.append(keyframe_view(kf, sup.masks[_object_mask(sup, hold)[0]]))
+    return [v for v in out if v is not None]
+
+
+def object_scale(g, covering: list) -> tuple[float, str]:
+    """The object's scale s (m) and the rule that chose it (module docstring)."""
+    if covering:
+        s = float(np.median([c[3] for c in covering]))
+        return s, (f"scale {s:.3f} m: the median of the {len(covering)} keyframe masks holding the point "
+                   f"(the whole object's in each view)")
+    sset = g.mapper.supervision
+    obj = [s.scales[s.levels == 1] for s in sset.by_keyframe.values()] if sset is not None else []
+    obj = np.concatenate(obj) if obj else np.zeros(0)
+    s = float(np.median(obj)) if len(obj) else 0.1
+    return s, f"scale {s:.3f} m: no keyframe sees the point, the median scale of the map's object masks"
+
+
+def object_at(g, point, scale: float | None = None, rule: str = "") -> tuple[GroundedObject, float, str, list]:
+    """The object at `point` [3] (map frame): (its group, its scale s, the rule that chose s, the
+    covering masks: covering_masks).
+    `scale` given (a taught object found again): that scale. ValueError when nothing is mapped
+    within NEAR_RADIUS of the point."""
+    p = check_point(point)
+    gs = g.mapper.gaussians
+    means = gs.means.detach().numpy()                                             # [N, 3]
+    d, i = nearest(means, p[None], 1) if len(means) else (np.full((1, 1), np.inf), np.zeros((1, 1), np.int64))
+    if not d[0, 0] <= NEAR_RADIUS:
+        raise ValueError("nothing mapped within {:.0f} cm of ({:.3f}, {:.3f}, {:.3f})".format(100 * NEAR_RADIUS, *p))
+    seed = int(i[0, 0])
+    covering = covering_masks(g, p)
+    if scale is None:
+        scale, rule = object_scale(g, covering)
+    c = g.gcfg
+    region = np.zeros(len(means), bool)
+    region[within(gs.means.detach(), p, max(REACH * scale, MIN_REACH))] = True
+    region[seed] = True
+    groups = g.groups(scale, region)
+    feat = g.field.gaussian_instance(scale, torch.tensor([seed]))[0]
+    home = groups.containing(feat)
+    if home >= 0:
+        ids = groups.members(home, grow=c.grow_groups)
+    else:
+        ids = groups.ball(feat)
+        if len(ids) < c.min_cluster_size and groups.features is not None and len(groups.features):
+            ids = groups.nearest(feat, 2 * c.min_cluster_size)[0]
+    ids = np.union1d(ids, [seed]).astype(np.int64)
+    sizes = lambda x: gs.log_scales.detach()[torch.from_numpy(x)].max(1).values.exp().numpy()  # noqa: E731
+    cand = np.nonzero(region)[0]
+    views = [v for v in (keyframe_view(kf, g.mapper.supervision.by_keyframe[kf.index].masks[m])
+                         for kf, m, _, _ in covering) if v is not None]
+    support = against = None
+    for _ in range(VOTE_ROUNDS):   # the point's views first, then every view that sees the group so far
+        if not views:
+            break
+        v = mask_votes(means[cand], views, sizes(cand), border_px=g.vote_border())
+        need = min(c.min_mask_votes, len(views))
+        ids = np.union1d(np.setdiff1d(ids, cand[v.carved(need)]), cand[v.voted(need)]).astype(np.int64)
+        inside = np.isin(cand, ids)
+        support, against = (v.inside > v.outside)[inside], (v.outside > v.inside)[inside]
+        ids = cand[inside]
+        views = object_views(g, means[ids], sizes(ids)) or views
+    link = c.link_spacing * g.spacing()
+    if link > 0 and len(ids) > 1:
+        ids = ids[connected_to(means[ids], p, link, support, against)]
+    if c.outlier_mads > 0 and len(ids) > 3:
+        ids = ids[robust_inliers(means[ids], c.outlier_mads)]
+    if not len(ids):
+        ids = np.array([seed], np.int64)
+    lo, hi, centre, R, ext = group_boxes(means[ids])
+    colors = (gs.colors.detach()[torch.from_numpy(ids)].clamp(0, 1) * 255).round().byte().numpy()
+    return GroundedObject(ids, means[ids].astype(np.float32), colors, lo, hi, centre, R, ext, 1.0), scale, rule, covering
+
+

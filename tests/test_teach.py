@@ -1,0 +1,297 @@
+"""Point and teach (rg_core/grounding/point.py, teach.py, map/taught.py): the object at a point, a
+taught name as supervision and as an answer, forgetting, persistence, and every bad input leaving
+the map as it was."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+
+@pytest.fixture(scope="module")
+def clicks(synth_scene):
+    from rg_core.eval.teaching import simulated_clicks
+
+    return {c.name: c for c in simulated_clicks(synth_scene)}
+
+
+def fresh(minilm_map_file, names=("spoon", "orange cup", "phillips screwdriver", "peach", "correction fluid")):
+    """A Grounder over a copy of the session's MiniLM map (teaching changes the map) with the scene's names."""
+    from rg_core.config import RGConfig
+    from rg_core.grounding.pipeline import Grounder
+    from rg_core.map.store import load_map
+    from rg_core.perception.embed import MiniLMText
+    from rg_core.perception.reasoning import TextReasoner
+
+    return Grounder.from_map(load_map(minilm_map_file), RGConfig(), text_encoder=MiniLMText(), reasoner=TextReasoner(),
+                               scene_names=list(names))
+
+
+def overlap(ids, ref) -> float:
+    """Share of the union the two id sets have in common."""
+    return len(np.intersect1d(ids, ref)) / max(len(np.union1d(ids, ref)), 1)
+
+
+def view_iou(g, scene, res, name) -> float:
+    """Median visible-mask IoU of an answer with the object named `name` over the test views that
+    see it (the bench's measure)."""
+    from rg_core.eval.grounding import iou
+
+    oid = next(o.id for o in scene.objects if o.name == name)
+    out = []
+    for f in scene.test:
+        gt = f.load_visible_mask() == oid
+        if gt.sum() >= 20:
+            _, _, vis = g.mask_layers(res, f.intrinsics.K, f.cam_to_world, f.intrinsics.width, f.intrinsics.height,
+                                      f.load_depth(), f.load_rgb())
+            out.append(iou(vis, gt))
+    return float(np.median(out))
+
+
+@pytest.fixture(scope="module")
+def taught(minilm_map_file, synth_scene, clicks):
+    """One map with 'blue mug' taught at the orange cup and 'my tool' at the screwdriver."""
+    from rg_core.grounding import teach
+
+    g = fresh(minilm_map_file)
+    before = {k: (s.embeddings.clone(), len(s.scales)) for k, s in g.mapper.supervision.by_keyframe.items()}
+    t1, a1 = teach.teach(g, "blue mug", point=clicks["orange cup"].point)
+    t2, a2 = teach.teach(g, "my tool", point=clicks["phillips screwdriver"].point)
+    return g, before, (t1, a1), (t2, a2)
+
+
+def test_point_answer_is_the_object_with_names_and_confidence(minilm_map_file, synth_scene, clicks):
+    from rg_core.grounding.point import point_answer
+
+    g = fresh(minilm_map_file)
+    for name in ("orange cup", "peach", "phillips screwdriver"):
+        res = point_answer(g, clicks[name].point)
+        assert res.success, res.message
+        assert view_iou(g, synth_scene, res, name) >= 0.7, name
+        assert res.names and res.names[0][0] == name, res.names      # ground-truth names: the map knows it
+        assert 0.0 <= res.confidence <= 1.0 and "scale" in res.explanation and "median" in res.explanation
+        js = res.to_json()
+        assert js["names"][0][0] == name and len(js["objects"]) == 1
+
+
+def test_a_keyframe_pixel_is_a_point(minilm_map_file):
+    from rg_core.grounding.point import point_at_pixel
+
+    g = fresh(minilm_map_file)
+    kf = g.mapper.keyframes[0]
+    w, h = kf.size
+    v, u = np.argwhere(kf.depth.numpy() > 0)[len(np.argwhere(kf.depth.numpy() > 0)) // 2]
+    p = point_at_pixel(g.mapper, kf.index, float(u), float(v))
+    from rg_core.geometry.conventions import project
+
+    uv, z = project(p[None], np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64))
+    assert np.allclose(uv[0], [u, v], atol=1e-6) and z[0] == pytest.approx(float(kf.depth[v, u]), abs=1e-5)
+    with pytest.raises(ValueError, match="no keyframe 999"):
+        point_at_pixel(g.mapper, 999, 1, 1)
+    with pytest.raises(ValueError, match=f"off keyframe {kf.index}'s image"):
+        point_at_pixel(g.mapper, kf.index, w + 3, 1)
+
+
+def test_taught_names_answer_with_their_group_and_variants(taught, synth_scene):
+    g, _, (t1, a1), (t2, a2) = taught
+    assert a1.success and a1.evidence == {"taught": 1.0} and "taught by a person" in a1.explanation
+    cup = a1.objects[0].gaussian_ids
+    assert view_iou(g, synth_scene, a1, "orange cup") >= 0.7
+    for q in ("blue mug", "mug", "my mug", "the blue mug", "Blue Mug", "my blue mug"):
+        res = g.ground(q)
+        assert res.success and res.target == "blue mug" and np.array_equal(res.objects[0].gaussian_ids, cup), (q, res.message)
+    res = g.ground("tool")
+    assert res.success and res.target == "my tool" and view_iou(g, synth_scene, res, "phillips screwdriver") >= 0.7
+    assert not g.ground("giraffe").success   # untaught and absent: still said so
+    assert g.vocabulary()[:2] == ["blue mug", "my tool"]
+    assert fresh.__defaults__[0][0] in g.vocabulary()
+
+
+def test_implicit_query_reaches_a_taught_name(taught):
+    g, _, (t1, a1), _ = taught
+    res = g.ground("something to drink coffee from", mode="implicit")
+    # the cup is both the taught 'blue mug' and the scene's 'orange cup': either name is this object
+    assert res.success and res.target in ("blue mug", "orange cup"), res.message
+    assert overlap(res.objects[0].gaussian_ids, a1.objects[0].gaussian_ids) >= 0.5
+
+
+def test_teaching_relabels_the_masks_and_forgetting_restores_them(minilm_map_file, clicks):
+    from rg_core.grounding import teach
+
+    g = fresh(minilm_map_file)
+    sset = g.mapper.supervision
+    before = {k: (s.embeddings.clone(), s.masks.copy()) for k, s in sset.by_keyframe.items()}
+    teach.teach(g, "blue mug", point=clicks["orange cup"].point)
+    text = torch.nn.functional.normalize(g.encode(["blue mug"])[0], dim=-1)
+    labelled = [(k, i) for k, s in sset.by_keyframe.items() if s.taught is not None
+                for i in np.flatnonzero(s.taught == "blue mug")]
+    assert len({k for k, _ in labelled}) >= 3, labelled   # every keyframe that sees the cup
+    for k, i in labelled:
+        assert torch.allclose(sset.by_keyframe[k].embeddings[i], text, atol=1e-6)
+    # the field's language space holds the name: the PCA basis reconstructs it
+    back = sset.pca.pca.inverse(sset.pca.pca.transform(text[None]))[0]
+    assert float((back - text).norm()) <= teach.PCA_RESIDUAL
+    teach.forget(g, "my blue mugs")   # a spelling of the same name
+    assert len(g.mapper.taught) == 0
+    for k, s in sset.by_keyframe.items():
+        assert s.taught is None and torch.equal(s.embeddings, before[k][0]) and np.array_equal(s.masks, before[k][1])
+    assert not g.ground("blue mug").success or g.ground("blue mug").target != "blue mug"
+
+
+def test_one_name_for_two_objects(minilm_map_file, clicks):
+    from rg_core.grounding import teach
+
+    g = fresh(minilm_map_file)
+    teach.teach(g, "mug", point=clicks["orange cup"].point)
+    teach.teach(g, "mug", point=clicks["peach"].point)
+    assert len(g.mapper.taught) == 2
+    both = g.ground("the mugs")
+    assert both.success and len(both.objects) == 2, both.message
+    assert len(g.ground("mug").objects) == 1
+    teach.teach(g, "mug", point=clicks["peach"].point)   # the same again: one record, not three
+    assert len(g.mapper.taught) == 2
+
+
+def test_persistence_across_save_load_frames_and_eviction(taught, synth_scene, tmp_path):
+    from rg_core.grounding.pipeline import Grounder
+    from rg_core.map.store import load_map, save_map
+    from rg_core.perception.embed import MiniLMText
+
+    g, _, (t1, a1), _ = taught
+    save_map(g.mapper, tmp_path / "t.rgmap")
+    m = load_map(tmp_path / "t.rgmap")
+    assert m.taught.names() == ["blue mug", "my tool"]
+    sup = m.supervision.by_keyframe
+    assert any(s.taught is not None and (s.taught == "blue mug").any() for s in sup.values())
+    g2 = Grounder.from_map(m, g.cfg, text_encoder=MiniLMText())
+    res = g2.ground("my mug")
+    assert res.success and overlap(res.objects[0].gaussian_ids, a1.objects[0].gaussian_ids) >= 0.98
+    # more frames, then an eviction pass from a camera that does not see the cup: still there
+    for f in synth_scene.test:
+        m.add_frame(f.load_rgb(), f.load_depth(), f.intrinsics.K, f.cam_to_world, stamp=100.0 + f.index)
+    kf = m.keyframes[0]
+    far = np.eye(4)
+    far[:3, 3] = [0.0, 0.0, 50.0]
+    evicted = m.evict(len(m.gaussians) // 2, kf.K, far, *kf.size)
+    assert evicted > 0
+    res = g2.ground("my mug")
+    assert res.success and view_iou(g2, synth_scene, res, "orange cup") >= 0.7, res.message
+
+
+@pytest.mark.parametrize("name, match", [("", "empty name"), ("x" * 65, "65 characters"),
+                                         ("mug\n", "control character"), ("1234", "no letter")])
+def test_bad_names_leave_the_map_unchanged(taught, clicks, name, match):
+    from rg_core.grounding import teach
+
+    g = taught[0]
+    state = (g.mapper.taught.version, len(g.mapper.taught))
+    with pytest.raises(ValueError, match=match):
+        teach.teach(g, name, point=clicks["peach"].point)
+    assert (g.mapper.taught.version, len(g.mapper.taught)) == state
+
+
+@pytest.mark.parametrize("point, match", [((np.nan, 0, 0), "NaN or infinite"), ((0, np.inf, 0), "NaN or infinite"),
+                                          ((100.0, 0.0, 0.0), "nothing mapped within 5 cm of \\(100.000, 0.000, 0.000\\)"),
+                                          ((1.0, 2.0), "3 coordinates")])
+def test_bad_points_leave_the_map_unchanged(taught, point, match):
+    from rg_core.grounding import teach
+    from rg_core.grounding.point import point_answer
+
+    g = taught[0]
+    sup = {k: id(s) for k, s in g.mapper.supervision.by_keyframe.items()}
+    with pytest.raises(ValueError, match=match):
+        teach.teach(g, "thing", point=point)
+    res = point_answer(g, point)
+    assert not res.success and res.message
+    assert len(g.mapper.taught) == 2 and sup == {k: id(s) for k, s in g.mapper.supervision.by_keyframe.items()}
+
+
+def test_forgetting_what_was_never_taught(taught):
+    from rg_core.grounding import teach
+
+    with pytest.raises(ValueError, match="nothing was taught as 'giraffe' \\(taught: 'blue mug', 'my tool'\\)"):
+        teach.forget(taught[0], "giraffe")
+    assert len(taught[0].mapper.taught) == 2
+
+
+def test_a_map_that_cannot_be_written_leaves_nothing_behind(taught, tmp_path, monkeypatch):
+    from rg_core.map import store
+
+    path = tmp_path / "m.rgmap"
+    store.save_map(taught[0].mapper, path)
+    old = path.read_bytes()
+
+    def broken(obj, f, *a, **k):
+        with open(f, "wb") as fh:
+            fh.write(b"half")
+        raise OSError("No space left on device")
+    monkeypatch.setattr(store.torch, "save", broken)
+    with pytest.raises(OSError, match="No space"):
+        store.save_map(taught[0].mapper, path)
+    assert path.read_bytes() == old and sorted(p.name for p in tmp_path.iterdir()) == ["m.rgmap"]
+
+
+def run_rg(*args):
+    return subprocess.run([sys.executable, "-m", "rg_core.cli", *args], capture_output=True, text=True, timeout=300)
+
+
+def test_cli_point_teach_list_forget(minilm_map_file, clicks, tmp_path):
+    import shutil
+
+    src = tmp_path / "a.rgmap"
+    shutil.copy(minilm_map_file, src)
+    p = [f"{v:.5f}" for v in clicks["orange cup"].point]
+    r = run_rg("point", str(src), "--point", *p, "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["success"] and out["names"] and out["objects"][0]["gaussians"] > 10
+    r = run_rg("teach", str(src), "blue mug", "--point", *p, "--out", str(tmp_path / "b.rgmap"),
+               "--train-seconds", "0", "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["taught"]["name"] == "blue mug" and out["names"] == ["blue mug"] and out["answer"]["success"]
+    r = run_rg("teach", str(src), "--list", "--json")   # --out: the source map is unchanged
+    assert json.loads(r.stdout)["taught"] == []
+    r = run_rg("ground", str(tmp_path / "b.rgmap"), "my mug", "--json")
+    assert r.returncode == 0 and json.loads(r.stdout)["target"] == "blue mug", r.stdout
+    r = run_rg("teach", str(tmp_path / "b.rgmap"), "--list")
+    assert r.returncode == 0 and "'blue mug'" in r.stdout
+    kf = 0   # --view / --pixel: a keyframe's pixel
+    r = run_rg("point", str(tmp_path / "b.rgmap"), "--view", str(kf), "--pixel", "80", "60", "--json")
+    assert r.returncode == 0 or "nothing mapped" in json.loads(r.stdout)["error"], r.stderr
+    for args, msg in [(("nan-name\x01", "--point", *p), "control character"),
+                      (("mug", "--point", "nan", "0", "0"), "NaN or infinite"),
+                      (("mug", "--point", "100", "0", "0"), "nothing mapped within 5 cm"),
+                      (("mug",), "--point X Y Z"),
+                      (("--forget", "giraffe"), "nothing was taught as 'giraffe'"),
+                      (("mug", "--point", *p, "--out", "/proc/rg_teach_test/x.rgmap"), "cannot write /proc/rg_teach_test/x.rgmap")]:
+        before = (tmp_path / "b.rgmap").read_bytes()
+        r = run_rg("teach", str(tmp_path / "b.rgmap"), *args, "--train-seconds", "0", "--json")
+        assert r.returncode != 0 and "Traceback" not in r.stderr, (args, r.stderr[-2000:])
+        assert msg in json.loads(r.stdout)["error"], (args, r.stdout)
+        assert (tmp_path / "b.rgmap").read_bytes() == before
+    r = run_rg("teach", str(tmp_path / "b.rgmap"), "--forget", "blue mug", "--json")
+    assert r.returncode == 0 and json.loads(r.stdout)["names"] == []
+
+
+def test_relations_and_counting_use_taught_names(minilm_map_file, clicks):
+    from rg_core.grounding import teach
+    from rg_core.grounding.relations import graph_json
+
+    g = fresh(minilm_map_file)
+    teach.teach(g, "mug", point=clicks["orange cup"].point)
+    teach.teach(g, "mug", point=clicks["peach"].point)
+    teach.teach(g, "my red toolbox", point=clicks["phillips screwdriver"].point)
+    graph = graph_json(g.scene_graph(), g.up())
+    names = [o["name"] for o in graph["objects"]]
+    assert names.count("mug") == 2 and "my red toolbox" in names, names   # a person's name first
+    res = g.ground("how many mugs are there")
+    assert res.success and len(res.objects) == 2 and res.message.startswith("2 "), res.message
+    res = g.ground("how many toolboxes")
+    assert res.success and len(res.objects) == 1, res.message
+    res = g.ground("the thing next to my toolbox")
+    assert res.success and res.target != "my red toolbox", res.message
+    teach.forget(g, "mugs")
+    assert "mug" not in [o.name for o in g.scene_graph()]
