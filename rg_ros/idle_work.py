@@ -59,6 +59,13 @@ class IdleWork:
                 self.wcfg.features = False
                 self.perception_state = f"failed: supervision: {type(exc).__name__}: {exc}"
                 return False
+            if len(self.mapper.taught):   # new keyframes' masks of taught objects take their names
+                from rg_core.grounding.teach import refresh
+
+                try:
+                    refresh(self._ensure_grounder())
+                except Exception as exc:  # noqa: BLE001 - the next query re-applies them
+                    self.log.warning("taught names not applied to the new keyframes yet: %s: %s", type(exc).__name__, exc)
             self._supervised_count = len(sset.by_keyframe)
             self._train_seconds, self._train_blocked = 0.0, ""
             self.log.info("supervision: %d keyframes, %s masks in %s multi-view objects (%.2f s)", self._supervised_count,

@@ -52,6 +52,7 @@ class TeachWork:
                     "", self.taught_names())
         try:
             t, res = teach(self._ensure_grounder(), name, point=point, result=result)
+            self._train_seconds, self._train_blocked = 0.0, ""   # the field trains on the new labels
             for o in res.objects if res.success else []:
                 self.mapper.protect(o.aabb_min, o.aabb_max)
             return res, t.name, self.mapper.taught.names()
@@ -75,6 +76,7 @@ class TeachWork:
             if not len(self.mapper.taught):   # nothing to relabel: the record set says what is wrong
                 self.mapper.taught.forget(name)
             gone = forget(self._ensure_grounder(), name)
+            self._train_seconds, self._train_blocked = 0.0, ""
             left = self.mapper.taught.names()
             where = "; ".join("({:.3f}, {:.3f}, {:.3f})".format(*np.asarray(t.point, float)) for t in gone)
             msg = (f"forgot {len(gone)} object{'s' if len(gone) != 1 else ''} taught as "
