@@ -295,3 +295,34 @@ def test_relations_and_counting_use_taught_names(minilm_map_file, clicks):
     assert res.success and res.target != "my red toolbox", res.message
     teach.forget(g, "mugs")
     assert "mug" not in [o.name for o in g.scene_graph()]
+
+
+def test_eval_scores_a_taught_map_as_it_is(minilm_map_file, synth_scene_dir, synth_scene, clicks, tmp_path):
+    """`rg eval SCENE --map TAUGHT` trains nothing (no new supervision, no field steps): the taught
+    map is scored as it is, and its taught name answers."""
+    from rg_core.map.store import load_map
+
+    p = [f"{v:.5f}" for v in clicks["orange cup"].point]
+    taught = tmp_path / "taught.rgmap"
+    r = run_rg("teach", str(minilm_map_file), "blue mug", "--point", *p, "--out", str(taught),
+               "--train-seconds", "0", "--json")
+    assert r.returncode == 0, r.stderr
+    steps = load_map(taught).field.steps
+    assert steps > 0
+    cup = next(o.id for o in synth_scene.objects if o.name == "orange cup")
+    queries = tmp_path / "queries.json"
+    queries.write_text(json.dumps([{"object_id": cup, "explicit": "blue mug", "implicit": []}]))
+    r = run_rg("eval", str(synth_scene_dir), "--map", str(taught), "--queries", str(queries), "--json", "--quiet")
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = json.loads(r.stdout)
+    assert out["field"]["trained"] == 0 and out["field"]["steps"] == steps and "as it is" in out["field"]["reason"]
+    assert "supervision" not in out   # the map's own supervision, taught labels and all
+    assert load_map(taught).field.steps == steps
+    q = out["eval"]["queries"][0]
+    assert q["target"] == "blue mug" and q["success"] and q["evidence"] == {"taught": 1.0}, q
+    assert out["eval"]["explicit"]["miou_visible"] >= 60, out["eval"]["explicit"]
+    r = run_rg("eval", str(synth_scene_dir), "--map", str(taught), "--queries", str(queries), "--field-steps", "3",
+               "--json", "--quiet")   # asked for: it trains
+    assert r.returncode == 0, r.stderr[-2000:]
+    field = json.loads(r.stdout)["field"]
+    assert "trained" not in field and field["steps"] > 0, field

@@ -33,8 +33,16 @@ def cmd_eval(args, cfg) -> dict:
     mapper = load_map(args.map) if args.map else None
     if mapper is not None and args.supervision == "oracle":
         mapper.field = None  # a map's own field was trained on its own supervision
+    field_seconds, as_is = args.field_seconds, False
+    if (mapper is not None and getattr(mapper, "field", None) is not None and mapper.field.steps > 0
+            and field_seconds is None and not was_given(args, "field.steps")):
+        # a map with a trained field (a taught one too) is scored as it is: no new supervision and
+        # no further training, unless --field-seconds / --field-steps asks for it
+        field_seconds, as_is = 0.0, True
     t = time.perf_counter()
-    grounder, report = build_grounder(scene, cfg, args.supervision, args.field_seconds, mapper, progress=not args.quiet)
+    grounder, report = build_grounder(scene, cfg, args.supervision, field_seconds, mapper, progress=not args.quiet)
+    if as_is:
+        report["field"] = {"trained": 0, "steps": grounder.field.steps, "reason": "--map: scored as it is"}
     report["seconds_build"] = round(time.perf_counter() - t, 3)
     report["eval"] = evaluate_queries(grounder, scene, args.implicit, progress=not args.quiet, ablation=args.ablation)
     if scene.kind == "bop":  # how much of each amodal mask no training view saw (one viewpoint hides parts)
@@ -55,7 +63,8 @@ def cmd_eval(args, cfg) -> dict:
 def add_eval(sub) -> None:
     p = sub.add_parser("eval", help="run queries.json on the test views: mIoU, localization, box IoU, timings")
     p.add_argument("scene", help="ReasoningGD or BOP scene folder (BOP: scene_camera.json + scene_gt.json)")
-    p.add_argument("--map", help="map file (default: build one from the scene)")
+    p.add_argument("--map", help="map file (default: build one from the scene); a map with a trained field is "
+                                  "scored as it is, unless --field-seconds / --field-steps asks for more training")
     p.add_argument("--queries", help="queries.json-format file [{object_id, explicit, implicit: [...]}] "
                                      "(default: the scene's queries.json; BOP: object names + the description set)")
     p.add_argument("--supervision", default="default", choices=("default", "oracle"))
