@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_ros_node import Harness as NodeHarness
 from test_ros_node import TOPICS_A, ros_args, start, status_values, stop, wait_for, write_params
 
 pytest.importorskip("rg_interfaces.srv", reason="rg_interfaces is not installed: scripts/bootstrap.sh builds it from msg/")
@@ -70,8 +71,9 @@ def overlap(a: set, b: set) -> float:
     return len(a & b) / max(min(len(a), len(b)), 1)
 
 
-class Harness:
-    """The node under test, the scene, and this process's rclpy probe."""
+class Harness(NodeHarness):
+    """The node under test, the scene, and this process's rclpy probe (test_ros_node's harness
+    with teaching's clients and subscriptions; its log, status and shutdown are shared)."""
 
     def __init__(self, tmp: Path):
         self.tmp, self.log_a, self.saved = tmp, tmp / "node.log", tmp / "taught.rgmap"
@@ -118,9 +120,6 @@ class Harness:
         wait_for(lambda: self.st() or self.node_a.poll() is not None, 120, "the node's first status")
         assert self.node_a.poll() is None, f"rg-node exited {self.node_a.returncode}:\n{self.log()[-3000:]}"
 
-    def st(self, name: str = "/rg_node") -> dict:
-        return self.status.get(name, {})
-
     def fresh_status(self, name: str = "/rg_node") -> dict:
         t = time.monotonic()
         return wait_for(lambda: self.st(name) if self.st(name).get("_t", 0) > t else None, 20, f"a status of {name}")
@@ -137,15 +136,6 @@ class Harness:
         req.point.point.x, req.point.point.y, req.point.point.z = (float(v) for v in p)
         return self.call(self.teach, req)
 
-    def log(self, path: Path | None = None) -> str:
-        return (path or self.log_a).read_text(errors="replace")
-
-    def close(self) -> None:
-        self.executor.shutdown(timeout_sec=5)
-        self.node.destroy_node()
-        self.ctx.try_shutdown()
-        self.thread.join(timeout=5)
-        stop(self.node_a)
 
 
 @pytest.fixture(scope="module")
