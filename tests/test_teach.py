@@ -326,3 +326,24 @@ def test_eval_scores_a_taught_map_as_it_is(minilm_map_file, synth_scene_dir, syn
     assert r.returncode == 0, r.stderr[-2000:]
     field = json.loads(r.stdout)["field"]
     assert "trained" not in field and field["steps"] > 0, field
+
+
+def test_new_keyframes_take_the_taught_names_and_the_others_are_left_alone(minilm_map_file, clicks):
+    import dataclasses
+
+    from rg_core.grounding import teach
+
+    g = fresh(minilm_map_file)
+    teach.teach(g, "blue mug", point=clicks["orange cup"].point)
+    m, sset = g.mapper, g.mapper.supervision
+    k0 = next(k for k, s in sset.by_keyframe.items() if s.taught is not None and (s.taught == "blue mug").any())
+    kf0 = next(kf for kf in m.keyframes if kf.index == k0)
+    new = max(sset.by_keyframe) + 1   # the same view again, as a new keyframe with the models' labels
+    m.keyframes.append(dataclasses.replace(kf0, index=new))
+    sset.add(new, teach.restore(sset.by_keyframe[k0]))
+    before = {k: s for k, s in sset.by_keyframe.items() if k != new}
+    assert teach.refresh(g) and not teach.refresh(g)   # once: then it is up to date
+    assert all(sset.by_keyframe[k] is s for k, s in before.items())     # not relabelled again
+    got = sset.by_keyframe[new]
+    assert got.taught is not None and np.array_equal(got.taught, sset.by_keyframe[k0].taught)
+    assert torch.equal(got.embeddings, sset.by_keyframe[k0].embeddings)

@@ -230,16 +230,18 @@ def _label(sup, visible: np.ndarray, name: str, text: torch.Tensor, scale: float
                                embeddings_view=ev, own=own, taught=taught, model=model, added=added)
 
 
-def apply(g) -> dict:
-    """Relabel every keyframe's masks for the taught objects now (restore first: idempotent),
-    refit the PCA basis if a taught name's embedding does not fit it, and let the field follow.
-    -> {"keyframes": relabelled keyframes, "masks": masks labelled, "refit": bool}."""
+def apply(g, only: set[int] | None = None) -> dict:
+    """Relabel the keyframes' masks for the taught objects now (restore first: idempotent), refit
+    the PCA basis if a taught name's embedding does not fit it, and let the field follow. `only`:
+    just these keyframes (new ones; the others keep their labels). -> {"keyframes": relabelled
+    keyframes, "masks": masks labelled, "refit": bool}."""
     m = g.mapper
     sset = m.supervision
     stats = {"keyframes": 0, "masks": 0, "refit": False}
     if sset is None:
         return stats
-    for k in list(sset.by_keyframe):
+    todo = [k for k in sset.by_keyframe if only is None or k in only]
+    for k in todo:
         sset.by_keyframe[k] = restore(sset.by_keyframe[k])
     g.cache.clear()
     texts = {}
@@ -251,8 +253,8 @@ def apply(g) -> dict:
             continue
         text = texts.setdefault(t.name, torch.nn.functional.normalize(g.encode([t.name])[0].float(), dim=-1))
         one = GroundingResult(True, "", objects=[obj])
-        for k, sup in sset.by_keyframe.items():
-            kf = kfs.get(k)
+        for k in todo:
+            sup, kf = sset.by_keyframe[k], kfs.get(k)
             if kf is None or sup.masks.shape[1:] != tuple(kf.depth.shape):
                 continue
             w, h = kf.size
@@ -260,8 +262,8 @@ def apply(g) -> dict:
             if int(vis.sum()) < MIN_PIXELS:
                 continue
             new = _label(sup, vis, t.name, text, t.scale)
-            stats["masks"] += int((new.taught == t.name).sum()) - int(((sup.taught if sup.taught is not None
-                                                                        else np.zeros(0)) == t.name).sum())
+            stats["masks"] += int((new.taught == t.name).sum()) - (int((sup.taught == t.name).sum())
+                                                                    if sup.taught is not None else 0)
             stats["keyframes"] += 1
             sset.by_keyframe[k] = new
     sset.pca.raw = [s.embeddings for s in sset.by_keyframe.values() if len(s.embeddings)]
@@ -288,7 +290,11 @@ def refresh(g) -> bool:
     if sset is None or (not len(g.mapper.taught) and getattr(sset, "taught_state", None) is None):
         return False
     now = (g.mapper.taught.version, tuple(sorted(sset.by_keyframe)))
-    if getattr(sset, "taught_state", None) == now:
+    was = getattr(sset, "taught_state", None)
+    if was == now:
         return False
-    apply(g)
+    if was is not None and was[0] == now[0]:   # only keyframes came or went: label the new ones
+        apply(g, only=set(now[1]) - set(was[1]))
+    else:
+        apply(g)
     return True
