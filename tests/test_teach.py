@@ -347,3 +347,10 @@ def test_new_keyframes_take_the_taught_names_and_the_others_are_left_alone(minil
     got = sset.by_keyframe[new]
     assert got.taught is not None and np.array_equal(got.taught, sset.by_keyframe[k0].taught)
     assert torch.equal(got.embeddings, sset.by_keyframe[k0].embeddings)
+
+
+def test_a_more_specific_query_is_not_the_taught_name():
+    from rg_core.grounding.phrases import names_match as matches
+
+    assert matches("mug", "blue mug") and matches("my blue mugs", "blue mug") and matches("The Mug", "mug")
+    assert not matches("red cup", "cup") and not matches("blue mug", "red mug") and not matches("", "mug")

@@ -158,6 +158,15 @@ def core_name(name: str) -> str:
     return _singular(" ".join(words)) if words else ""
 
 
+def names_match(query: str, name: str) -> bool:
+    """Whether `query` names the taught `name`: the same core name ("my blue mugs" is "blue mug"),
+    or the taught name ends in the query as a word ("mug" finds "blue mug"). A query more specific
+    than the name is not it: "red cup" is not the object taught as "cup" (the scene may hold
+    several cups, and the untaught red one must not answer as the taught one)."""
+    q, n = core_name(query), core_name(name)
+    return bool(q) and (q == n or n.endswith(" " + q))
+
+
 def _relation(text: str) -> Relational | None:
     """'cups (that are) next to the laptop' -> Relational, or None."""
     m = re.fullmatch(r"(?P<t>.+?) (?:(?:that|which) )?(?:(?:is|are|sits|sit|lies|lie|stands|stand|rests|rest)"

@@ -13,6 +13,7 @@ from ..geometry.points import nearest, within
 from .boxes import connected_to, group_boxes, robust_inliers
 from .carve import MaskView, mask_votes
 from .grouping import Groups
+from .phrases import names_match
 from .relevancy import CANONICAL, relevancy
 from .result import GroundedObject
 
@@ -39,6 +40,7 @@ class Reference:
     similarity: float
     scale: float
     mask: torch.Tensor              # [H, W] bool, the reference mask
+    name: str = ""                  # the target's name (masks taught as another name are no candidates)
 
 
 @dataclass
@@ -54,14 +56,25 @@ class Peak:
     has_depth: bool                 # the render has depth at the pixel (anchor is meaningful)
 
 
-def mask_candidates(g, target: torch.Tensor) -> list[MaskCandidate]:
-    """Per keyframe, its mask most similar to the target text [D]."""
+def similarities(sup, target: torch.Tensor, name: str = "") -> torch.Tensor:
+    """[M] each mask's embedding against the target text [D]; -1 for a mask a person taught as
+    another name than `name` (teach.py): a taught "red cup" is no candidate for "blue cup", however
+    alike the two texts embed."""
+    sims = torch.nn.functional.normalize(sup.embeddings.float(), dim=-1) @ target.float()
+    if sup.taught is not None and name:
+        other = [bool(t) and not names_match(name, t) for t in sup.taught]
+        sims = torch.where(torch.tensor(other, dtype=torch.bool), torch.full_like(sims, -1.0), sims)
+    return sims
+
+
+def mask_candidates(g, target: torch.Tensor, name: str = "") -> list[MaskCandidate]:
+    """Per keyframe, its mask most similar to the target text [D] (named `name`: similarities)."""
     by_index = {kf.index: kf for kf in g.mapper.keyframes}
     out = []
     for k, sup in g.mapper.supervision.by_keyframe.items():
         if k not in by_index or not len(sup.embeddings):
             continue
-        sims = torch.nn.functional.normalize(sup.embeddings.float(), dim=-1) @ target
+        sims = similarities(sup, target, name)
         i = int(sims.argmax())
         out.append(MaskCandidate(float(sims[i]), int(sup.masks[i].sum()), by_index[k], i, float(sup.scales[i])))
     return out
@@ -71,14 +84,14 @@ def reference(g, name: str) -> Reference | str:
     """The keyframe whose mask embedding is most like `name` (among near-ties the one that sees it
     largest) and that mask's scale s*; a message when no mask is similar enough."""
     target = g.encode([name])[0]
-    cands = mask_candidates(g, target)
+    cands = mask_candidates(g, target, name)
     top = max((c.similarity for c in cands), default=-2.0)
     best = max((c for c in cands if c.similarity >= top - 0.02), key=lambda c: c.pixels, default=None)
     sim = -2.0 if best is None else best.similarity
     if best is None or sim < g.gcfg.min_mask_similarity:
         return f"no part of the map looks like {name!r}: best mask similarity {sim:.2f} < {g.gcfg.min_mask_similarity}"
     mask = torch.from_numpy(g.mapper.supervision.by_keyframe[best.keyframe.index].masks[best.index])
-    return Reference(target, cands, best.keyframe, best.index, best.similarity, best.scale, mask)
+    return Reference(target, cands, best.keyframe, best.index, best.similarity, best.scale, mask, name)
 
 
 def peak(g, ref: Reference, name: str) -> Peak:
@@ -212,7 +225,7 @@ def carve_views(g, ref: Reference, anchor: np.ndarray | None = None) -> list[Mas
         if not check:
             options = [(c.similarity, c.index)]
         else:
-            sims = (torch.nn.functional.normalize(s.embeddings.float(), dim=-1) @ ref.target).numpy()
+            sims = similarities(s, ref.target, ref.name).numpy()
             options = [(float(sims[i]), int(i)) for i in np.flatnonzero(sims >= floor)]
         best = None                                                     # (similarity, overlap, index)
         for sim, i in options:

@@ -19,7 +19,7 @@ import torch
 
 from ..map.taught import TaughtObject, check_name
 from .masks import result_masks
-from .phrases import core_name
+from .phrases import core_name, names_match
 from .locate import check_point, object_at
 from .result import GroundedObject, GroundingResult
 
@@ -28,13 +28,6 @@ RELABEL_IOU = 0.5          # a keyframe mask this like the object's visible mask
 ADD_BELOW_IOU = 0.8        # with no mask this like it, the visible mask itself joins the keyframe's
 MIN_PIXELS = 30            # fewer visible pixels: the keyframe does not see the object
 PCA_RESIDUAL = 0.25        # a taught embedding the basis reconstructs worse than this refits it
-
-
-def matches(query: str, name: str) -> bool:
-    """Whether `query` names the taught `name`: the same core name, or one ends with the other
-    as a word ("mug" finds "blue mug"; "my blue mug" finds "blue mug")."""
-    q, n = core_name(query), core_name(name)
-    return bool(q) and (q == n or n.endswith(" " + q) or q.endswith(" " + n))
 
 
 def _plural(query: str) -> bool:
@@ -105,7 +98,7 @@ def answer(g, query: str, max_results: int = 1, reasoning: str = "", exact: bool
     none (`exact`: only by its core name, as a reasoner's pick). A plural ("the mugs") or
     max_results > 1 returns every object taught under that name."""
     hits = [t for t in g.mapper.taught
-            if (core_name(query) == core_name(t.name) if exact else matches(query, t.name))]
+            if (core_name(query) == core_name(t.name) if exact else names_match(query, t.name))]
     if not hits:
         return None
     exact = [t for t in hits if core_name(t.name) == core_name(query)]
