@@ -98,6 +98,17 @@ def gt_colours(scene, min_px: int = 20) -> dict[str, str]:
     return {o.name: colour_term(np.concatenate(px[o.id])) for o in scene.objects if o.id in px}
 
 
+def what_it_got(g, q: dict, r) -> object:
+    """What an answer `r` to query `q` says, in the form of q["expect"]: the count, the set of names
+    (all), else the target name ("" when unsuccessful)."""
+    if q["kind"] == "count":
+        return len(r.objects) if r.success else 0
+    if q["kind"] == "all":
+        graph = g.scene_graph()
+        return sorted(next((o.name for o in graph if o.obj is x), "?") for x in r.objects) if r.success else []
+    return r.target if r.success else ""
+
+
 def queries(scene, rng, colours: dict[str, str], cam: np.ndarray, K: np.ndarray) -> list[dict]:
     """{kind, text, expect, template} from the scene's ground truth: expect is a name (single answer),
     an int (count) or a sorted list of names (all); template "generated" or "freeform"."""
@@ -227,14 +238,7 @@ def run_scene(path: Path, seed: int, supervision: str) -> tuple[list[dict], dict
         t = time.perf_counter()
         r = g.ground(q["text"], cam_to_world=cam)
         dt = time.perf_counter() - t
-        graph = g.scene_graph()
-        got_names = sorted(next((o.name for o in graph if o.obj is x), "?") for x in r.objects)
-        if q["kind"] == "count":
-            got = len(r.objects) if r.success else 0
-        elif q["kind"] == "all":
-            got = got_names if r.success else []
-        else:
-            got = r.target if r.success else ""
+        got = what_it_got(g, q, r)
         row = {**{k: v for k, v in q.items() if k != "slots"}, "scene": seed, "got": got, "right": got == q["expect"],
                "seconds": dt, "first": i == 0, "explanation": r.explanation or r.message, "graph": "graph" in r.timings}
         if isinstance(q["expect"], str) and r.objects:

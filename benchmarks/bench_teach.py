@@ -52,7 +52,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from _common import add_output_flags, finish, pyplot, rg_json, save_figure  # noqa: E402
-from bench_relations import gt_colours, make_scene, queries as relation_queries  # noqa: E402
+from bench_relations import gt_colours, make_scene, queries as relation_queries, what_it_got  # noqa: E402
 
 RETRAIN_SECONDS = 60.0
 RELATION_KINDS = {"colour": "attribute", "count": "counting"}   # every other kind: relational
@@ -106,15 +106,7 @@ def ask_relations(g, scene, qs: list[dict], cam: np.ndarray) -> list[dict]:
     """bench_relations' scoring: right = the expected target (count: the number; all: the set)."""
     rows = []
     for q in qs:
-        r = g.ground(q["text"], cam_to_world=cam)
-        graph = g.scene_graph()
-        names = sorted(next((o.name for o in graph if o.obj is x), "?") for x in r.objects)
-        if q["kind"] == "count":
-            got = len(r.objects) if r.success else 0
-        elif q["kind"] == "all":
-            got = names if r.success else []
-        else:
-            got = r.target if r.success else ""
+        got = what_it_got(g, q, g.ground(q["text"], cam_to_world=cam))
         rows.append({"kind": q["kind"], "group": RELATION_KINDS.get(q["kind"], "relational"), "text": q["text"],
                      "expect": q["expect"], "got": got, "right": got == q["expect"]})
     return rows
