@@ -354,3 +354,15 @@ def test_a_more_specific_query_is_not_the_taught_name():
 
     assert matches("mug", "blue mug") and matches("my blue mugs", "blue mug") and matches("The Mug", "mug")
     assert not matches("red cup", "cup") and not matches("blue mug", "red mug") and not matches("", "mug")
+
+
+def test_teaching_a_click_answer_names_the_group_that_was_shown(minilm_map_file, clicks):
+    from rg_core.grounding import teach
+    from rg_core.grounding.point import point_answer
+
+    g = fresh(minilm_map_file)
+    shown = point_answer(g, clicks["peach"].point)
+    assert shown.point == pytest.approx(list(clicks["peach"].point)) and shown.to_json()["point"]
+    t, res = teach.teach(g, "my peach", result=shown)
+    assert np.array_equal(res.objects[0].gaussian_ids, shown.objects[0].gaussian_ids)
+    assert np.allclose(t.point, clicks["peach"].point)

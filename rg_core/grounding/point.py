@@ -73,7 +73,7 @@ def point_answer(g, point, query: str = "") -> GroundingResult:
     except ValueError as exc:
         res.message = str(exc)
         return res
-    res.objects, res.scale = [obj], scale
+    res.objects, res.scale, res.point = [obj], scale, p.tolist()
     taught = teach.taught_at(g, obj)
     res.names = ([(t.name, teach.TAUGHT_CONFIDENCE) for t in taught]
                  + [nc for nc in name_candidates(g, covering) if nc[0] not in {t.name for t in taught}])

@@ -41,6 +41,7 @@ class GroundingResult:
     scale: float = 0.0                 # physical scale s* (m) the groups were formed at
     evidence: dict[str, float] = field(default_factory=dict)   # what the confidence is made of
     names: list[tuple[str, float]] = field(default_factory=list)  # point answers: what the map thinks it is
+    point: list[float] | None = None   # point answers: the map-frame point asked about
 
     def to_json(self) -> dict:
         return {"success": self.success, "message": self.message, "query": self.query, "target": self.target,
@@ -48,4 +49,5 @@ class GroundingResult:
                 "reference_view": int(self.reference_view), "scale": float(self.scale), "objects": [o.to_json() for o in self.objects],
                 "timings": {k: float(v) for k, v in self.timings.items()},
                 "evidence": {k: float(v) for k, v in self.evidence.items()},
-                **({"names": [[n, float(v)] for n, v in self.names]} if self.names else {})}
+                **({"names": [[n, float(v)] for n, v in self.names]} if self.names else {}),
+                **({"point": [float(v) for v in self.point]} if self.point is not None else {})}

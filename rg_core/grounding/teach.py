@@ -145,6 +145,8 @@ def teach(g, name: str, point=None, result: GroundingResult | None = None) -> tu
     g._check_cache()
     if (point is None) == (result is None):
         raise ValueError("teach: give a point or an answer, not both and not neither")
+    if result is not None and result.point is not None:   # a point answer (a click): taught as at its point, the same group
+        point, result = result.point, None
     if result is not None:
         if not result.objects:
             raise ValueError("teach: the answer holds no object to name")
