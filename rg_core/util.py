@@ -71,9 +71,22 @@ def torch_threads(n: int):
             torch.set_num_threads(old)
 
 
+_PREFETCHING: list = []   # the threads prefetch started (join_prefetches waits for them)
+
+
 def prefetch(module: str) -> None:
     """Import a module in a background thread (a later import of it waits for this one)."""
     import threading
 
     if module not in sys.modules:
-        threading.Thread(target=importlib.import_module, args=(module,), daemon=True).start()
+        t = threading.Thread(target=importlib.import_module, args=(module,), daemon=True)
+        t.start()
+        _PREFETCHING.append(t)
+
+
+def join_prefetches() -> None:
+    """Wait for every prefetch import to finish: a process must not exit while one is loading a
+    native library (a daemon thread stopped inside C++ initialisation aborts the process:
+    "terminate called without an active exception", exit -6, after the work was done)."""
+    while _PREFETCHING:
+        _PREFETCHING.pop().join()

@@ -18,3 +18,16 @@ def test_torch_threads_sets_and_restores_the_count():
     except RuntimeError:
         pass
     assert torch.get_num_threads() == old   # restored after an error too
+
+
+def test_join_prefetches_waits_for_the_background_imports():
+    import sys
+
+    from rg_core import util
+
+    name = "xml.dom.minidom"
+    sys.modules.pop(name, None)
+    util.prefetch(name)
+    util.join_prefetches()
+    assert name in sys.modules and util._PREFETCHING == []
+    util.join_prefetches()   # nothing left: returns at once

@@ -16,7 +16,7 @@ import sys
 
 from ..config import ConfigError, load_config
 from ..perception.base import BackendError
-from ..util import stdout_to_stderr
+from ..util import join_prefetches, stdout_to_stderr
 from . import evaluation, grounding, mapping, model_store, reporting, synthesis, teaching
 from .config_args import apply_overrides
 
@@ -69,4 +69,5 @@ def main(argv: list[str] | None = None) -> int:
             real_stdout.write(json.dumps(result) + "\n")
         elif code == 0:
             _print_human(result, real_stdout, getattr(args, "human", None))
+    join_prefetches()   # never exit while a background import is loading a native library
     return code
