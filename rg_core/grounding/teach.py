@@ -93,12 +93,10 @@ def answer_query(g, query: str, max_results: int = 1) -> GroundingResult | None:
     return answer(g, query, max_results)
 
 
-def answer(g, query: str, max_results: int = 1, reasoning: str = "", exact: bool = False) -> GroundingResult | None:
+def answer(g, query: str, max_results: int = 1, reasoning: str = "") -> GroundingResult | None:
     """The answer to a query naming a taught object, from its taught group(s); None when it names
-    none (`exact`: only by its core name, as a reasoner's pick). A plural ("the mugs") or
-    max_results > 1 returns every object taught under that name."""
-    hits = [t for t in g.mapper.taught
-            if (core_name(query) == core_name(t.name) if exact else names_match(query, t.name))]
+    none. A plural ("the mugs") or max_results > 1 returns every object taught under that name."""
+    hits = [t for t in g.mapper.taught if names_match(query, t.name)]
     if not hits:
         return None
     exact = [t for t in hits if core_name(t.name) == core_name(query)]
@@ -197,8 +195,6 @@ def restore(sup):
 
 def _label(sup, visible: np.ndarray, name: str, text: torch.Tensor, scale: float):
     """`sup` with its masks that are the object (visible [h, w]) labelled `name` (text [D])."""
-    from ..perception.supervision import KeyframeSupervision  # noqa: F401 - the type returned
-
     M = len(sup.scales)
     taught = sup.taught.copy() if sup.taught is not None else np.full(M, "", dtype=object)
     model = sup.model.clone() if sup.model is not None else sup.embeddings.clone().float()
