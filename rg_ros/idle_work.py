@@ -36,6 +36,8 @@ class IdleWork:
         with self.lock:
             try:
                 self._ensure_grounder().load_models()
+                with self.read_lock:   # the readers' Grounder takes the loaded models
+                    self._share_models()
                 self.log.info("grounding models loaded ahead of the first query (%.2f s)", time.perf_counter() - t)
             except Exception as exc:  # noqa: BLE001 - the first query says what is missing
                 self.log.warning("grounding models not loaded ahead: %s: %s", type(exc).__name__, exc)

@@ -5,12 +5,13 @@ worker thread takes frames out and runs `Mapper.add_frame` (a FrameError is logg
 the map is untouched). When the queue is idle it does small slices of background work
 (`idle_work.py`: supervision, field training, model loading, refinement).
 
-One re-entrant lock (`MapWorker.lock`) is held around every map mutation and read that must see a
-consistent map: add_frame, supervision, field training, refinement, reset, save, grounding, masks
-and map snapshots. Callers go first: while one waits for the lock (`_acquire`), the thread starts
-no new frame or slice and a training slice ends after its current step, so a query waits for at
-most one frame, training step or supervision pass, not for every slice of a long background job
-(a released lock is otherwise often re-taken by the thread that released it).
+Readers never touch the live map: after each unit of work the thread publishes a snapshot
+(rg_core/map/snapshot.py) and /ground, point answers, masks, the scene graph, the map cloud and
+saves read that (`reads.py`, `map_admin.py`), so a query never waits for mapping work.
+One re-entrant lock (`MapWorker.lock`) is held around every change of the live map: add_frame,
+supervision, field training, refinement, teaching, reset and loading. Callers that change the map
+go first: while one waits for the lock (`_acquire`), the thread starts no new frame or slice and a
+training slice ends after its current step.
 """
 from __future__ import annotations
 
@@ -24,22 +25,23 @@ import numpy as np
 
 from rg_core.config import RGConfig
 from rg_core.field.converge import describe
-from rg_core.grounding.result import GroundingResult
-from rg_core.perception.query import query_problem
 from rg_core.map.frames import FrameError
 from rg_core.map.mapper import Mapper
 
 from .frame_queue import Frame, FrameQueue
 from .idle_work import IdleWork
+from .map_admin import MapAdmin
 from .params import WorkerConfig
+from .reads import MapReads
 from .worker_teach import TeachWork
 
 log = logging.getLogger("rg_ros.worker")
 
 
-class MapWorker(TeachWork, IdleWork):
-    """The mapping thread, its frame queue and the map lock; the services' side (reset, save,
-    ground, scene graph, masks, snapshots, stats; point answers, teach and forget: worker_teach.py)."""
+class MapWorker(MapReads, MapAdmin, TeachWork, IdleWork):
+    """The mapping thread, its frame queue and the map lock; the services' side (reset, stats;
+    reads of the newest snapshot: reads.py; save, load, pause: map_admin.py; teach and forget:
+    worker_teach.py)."""
 
     def __init__(self, cfg: RGConfig | None = None, wcfg: WorkerConfig | None = None, mapper: Mapper | None = None,
                  logger: logging.Logger | None = None,
@@ -73,6 +75,8 @@ class MapWorker(TeachWork, IdleWork):
         self._supervised_count = 0
         self._refined_iters = 0           # since the last keyframe
         self._kf_count = len(self.mapper.keyframes)
+        self._init_reads()
+        self._init_admin()
 
     # ------------------------------------------------------------------------------ life cycle
 
@@ -101,7 +105,11 @@ class MapWorker(TeachWork, IdleWork):
         return self._thread is not None and self._thread.is_alive()
 
     def submit(self, frame: Frame) -> bool:
-        """Queue a frame (never blocks on mapping); True if the oldest queued frame was dropped."""
+        """Queue a frame (never blocks on mapping); True if the oldest queued frame was dropped.
+        While mapping is paused the frame is counted and dropped (False)."""
+        if self.paused:
+            self.paused_dropped += 1
+            return False
         return self.queue.put(frame)
 
     # ------------------------------------------------------------------------------ the thread
@@ -119,15 +127,25 @@ class MapWorker(TeachWork, IdleWork):
                     self._map_frame(frame)
                     busy = True
                     continue
+                if self.paused:   # the map does not change: no supervision, training or refinement
+                    busy = False
+                    continue
+                self._mark_stale()
                 busy = self._idle_step()
+                with self.lock:   # what the step changed (or nothing: the same snapshot again)
+                    self._publish()
         except Exception as exc:  # noqa: BLE001 - the node reports a dead worker in its status
             self.worker_error = f"{type(exc).__name__}: {exc}"
             self.log.error("mapping worker stopped: %s\n%s", self.worker_error, traceback.format_exc())
 
     def _map_frame(self, f: Frame) -> None:
+        self._mark_stale()
         try:
             with self.lock:
-                r = self.mapper.add_frame(f.rgb, f.depth, f.K, f.cam_to_world, f.stamp)
+                try:
+                    r = self.mapper.add_frame(f.rgb, f.depth, f.K, f.cam_to_world, f.stamp)
+                finally:
+                    self._publish()   # before the counters: a frame counted as mapped is in the snapshot
         except FrameError as exc:
             self.rejected += 1
             self.last_error = f"frame at {f.stamp:.3f} rejected: {exc}"
@@ -153,17 +171,8 @@ class MapWorker(TeachWork, IdleWork):
             self._train_seconds, self._train_blocked, self._supervised_count = 0.0, "", 0
             self._refined_iters = 0
             self.last_error, self.last_result = "", {}
-        finally:
-            self.lock.release()
-
-    def save(self, path: str | Path) -> Path:
-        from rg_core.map.store import save_map
-
-        self._acquire(0)
-        try:
-            if self.field is not None and hasattr(self.field, "sync"):
-                self.field.sync()   # the field follows Gaussians added or pruned since its last step
-            return save_map(self.mapper, path)
+            self._snap = None
+            self._publish()
         finally:
             self.lock.release()
 
@@ -185,32 +194,6 @@ class MapWorker(TeachWork, IdleWork):
                 if self._callers == 0:
                     self._no_callers.set()
 
-    def ground(self, query: str, mode: str = "auto", max_results: int = 1, timeout: float = 30.0,
-               cam_to_world: np.ndarray | None = None) -> GroundingResult:
-        """Ground `query` in the current map; never raises (failures are unsuccessful results).
-        `cam_to_world` [4, 4]: the camera of view-dependent words (None: the newest keyframe)."""
-        problem = query_problem(query, self.cfg.ground.max_query_chars)
-        if problem:
-            return GroundingResult(False, problem, query=str(query)[:200])
-        if not self.mapper.keyframes:
-            return GroundingResult(False, "map is empty: no keyframes yet (send frames first)", query=query)
-        if not self._acquire(timeout):
-            return GroundingResult(False, f"map busy for {timeout:.1f} s (mapping); try again", query=query)
-        try:
-            res = self._ensure_grounder().ground(query, mode=mode, max_results=max_results, cam_to_world=cam_to_world,
-                                                 camera="the robot's current camera")
-            for o in res.objects if res.success else []:   # what was just grounded survives the map's budget
-                self.mapper.protect(o.aabb_min, o.aabb_max)
-            return res
-        except ImportError as exc:   # a stage of the pipeline (reasoner, text encoder) has not landed
-            self.log.error("grounding '%s': %s", query[:80], exc)
-            return GroundingResult(False, f"grounding not available: {exc}", query=query)
-        except Exception as exc:  # noqa: BLE001 - the service answers, the node lives
-            self.log.error("grounding '%s' failed: %s\n%s", query[:80], exc, traceback.format_exc())
-            return GroundingResult(False, f"grounding failed: {type(exc).__name__}: {exc}", query=query)
-        finally:
-            self.lock.release()
-
     def _ensure_grounder(self):
         """The Grounder over the current map (made on first use); call with the lock held."""
         from rg_core.field import FeatureField
@@ -221,69 +204,21 @@ class MapWorker(TeachWork, IdleWork):
         if self._grounder is None:
             text = self._perception[1].encode_texts if self._perception is not None else None  # the map's space
             self._grounder = Grounder.from_map(self.mapper, self.cfg, field=self.field, text_encoder=text)
+            self._share_models()
         return self._grounder
 
-    def scene_graph(self, timeout: float = 30.0) -> tuple[list, list, np.ndarray] | None:
-        """(objects, relations, up) of the current map's scene graph (relations.build_graph, cached
-        with the map), or None when the map is empty, not supervised yet or busy for `timeout` s.
-        Never raises: a failure is logged and gives None."""
-        if not self.mapper.keyframes or not self._acquire(timeout):
-            return None
-        try:
-            from rg_core.grounding.relations import graph_relations
-
-            g = self._ensure_grounder()
-            if g._not_ready():
-                return None
-            objs, up = g.scene_graph(), g.up()
-            return objs, graph_relations(objs, up), up
-        except Exception as exc:  # noqa: BLE001 - the node lives
-            self.log.error("scene graph failed: %s\n%s", exc, traceback.format_exc())
-            return None
-        finally:
-            self.lock.release()
-
-    def masks(self, result: GroundingResult, K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int,
-              timeout: float = 0.5, depth: np.ndarray | None = None,
-              image: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
-        """(amodal, visible) bool [H, W] of a result from a camera (the visible one sharpened by that
-        camera's depth image [H, W] metres and colour image [H, W, 3], if given), or None if the map
-        is busy or there is no grounder (e.g. after a reset)."""
-        if self._grounder is None or not self._acquire(timeout):
-            return None
-        try:
-            if self._grounder is None:
-                return None
-            amodal, visible = self._grounder.masks(result, K, cam_to_world, width, height, depth, image)
-            return np.asarray(amodal, bool), np.asarray(visible, bool)
-        finally:
-            self.lock.release()
-
-    def snapshot(self, max_points: int = 0, timeout: float = 0.1) -> tuple[np.ndarray, np.ndarray] | None:
-        """(Gaussian centres [N, 3] float32, colours [N, 3] uint8), evenly subsampled to
-        `max_points` (0: all); None if the map is busy."""
-        if not self._acquire(timeout):
-            return None
-        try:
-            g = self.mapper.gaussians
-            if not len(g):
-                return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8)
-            pts = g.means.detach().numpy().astype(np.float32)
-            cols = (g.colors.detach().clamp(0, 1).numpy() * 255).round().astype(np.uint8)
-        finally:
-            self.lock.release()
-        if max_points and len(pts) > max_points:
-            idx = np.linspace(0, len(pts) - 1, max_points).round().astype(np.int64)
-            pts, cols = pts[idx], cols[idx]
-        return pts, cols
-
     def stats(self) -> dict:
-        """Counters for the status topic; takes no lock (never waits for mapping)."""
+        """Counters for the status topic; takes no lock (never waits for mapping). Keyframes and
+        Gaussians are the newest snapshot's (what a query answers from)."""
         m = self.mapper
         field = self.field
-        return {"frames": m.frames_seen, "keyframes": len(m.keyframes), "gaussians": len(m.gaussians),
+        snap = self._snap if self._snap is not None else m   # what queries see
+        return {"frames": m.frames_seen, "keyframes": len(snap.keyframes), "gaussians": len(snap.gaussians),
                 "mapped": self.processed, "rejected": self.rejected, "queue": len(self.queue),
-                "queue_size": self.queue.maxsize, "dropped": self.queue.dropped, "received": self.queue.put_count,
+                "queue_size": self.queue.maxsize, "dropped": self.queue.dropped + self.paused_dropped,
+                "received": self.queue.put_count + self.paused_dropped, "dropped_paused": self.paused_dropped,
+                "paused": self.paused, "saving": self.saving, "saves": self.saves,
+                "snapshot_age_s": round(self.snapshot_age(), 3), "query_latency_s": self.latency.summary(),
                 "evicted": int(m.totals.get("evicted", 0)), "keyframes_dropped": int(m.totals.get("keyframes_dropped", 0)),
                 "keyframes_replaced": int(m.totals.get("keyframes_replaced", 0)), "revisits": int(m.totals.get("revisits", 0)),
                 "split": int(m.totals.get("split", 0)), "pruned": int(m.totals.get("pruned", 0)),

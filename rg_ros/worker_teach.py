@@ -1,7 +1,8 @@
-"""The map worker's point and teaching side (no rclpy here): the object at a 3D point of the map
-(a click in RViz), teaching it a name and forgetting one, serialised with mapping and /ground by
-the worker's map lock (`_acquire`) like every other read of the map. The library does the work
-(rg_core/grounding/point.py, teach.py); on any refusal it leaves the map as it was, and so do these.
+"""The map worker's teaching side (no rclpy here): teaching the object at a 3D point of the map (a
+click in RViz) a name and forgetting one. Both change the live map, so they hold the map lock
+(`_acquire`, ahead of the mapping thread) and the readers' lock (the models are shared with
+queries), then publish a snapshot. The library does the work (rg_core/grounding/teach.py); on any
+refusal it leaves the map as it was, and so do these. Point answers are reads (reads.py).
 """
 from __future__ import annotations
 
@@ -11,31 +12,28 @@ import numpy as np
 
 from rg_core.grounding.result import GroundingResult
 
-EMPTY_MAP = "map is empty: no keyframes yet (send frames first)"
+from .reads import EMPTY_MAP
 
 
 class TeachWork:
-    """Mixin of MapWorker: uses its mapper, lock (_acquire), _ensure_grounder and log."""
+    """Mixin of MapWorker: uses its mapper, lock (_acquire), read_lock, _publish, _ensure_grounder
+    and log."""
 
-    def point_answer(self, point, timeout: float = 30.0) -> GroundingResult:
-        """The object at `point` [3] (map frame) as an answer (names, confidence, its group); never
-        raises: bad input, nothing mapped there or a busy map is an unsuccessful result saying why."""
-        from rg_core.grounding.point import point_answer
-
-        where = "point"
-        if not self.mapper.keyframes:
-            return GroundingResult(False, EMPTY_MAP, query=where)
+    def _changing(self, timeout: float) -> bool:
+        """Take the map lock, then the readers' lock (a query in progress finishes first)."""
         if not self._acquire(timeout):
-            return GroundingResult(False, f"map busy for {timeout:.1f} s (mapping); try again", query=where)
+            return False
+        if self.read_lock.acquire(timeout=timeout if timeout > 0 else -1):
+            return True
+        self.lock.release()
+        return False
+
+    def _changed(self) -> None:
+        """Publish what changed and release both locks."""
         try:
-            res = point_answer(self._ensure_grounder(), point)
-            for o in res.objects if res.success else []:   # what was just shown survives the map's budget
-                self.mapper.protect(o.aabb_min, o.aabb_max)
-            return res
-        except Exception as exc:  # noqa: BLE001 - the caller gets an answer, the node lives
-            self.log.error("point answer at %s failed: %s\n%s", point, exc, traceback.format_exc())
-            return GroundingResult(False, f"point answer failed: {type(exc).__name__}: {exc}", query=where)
+            self._publish()
         finally:
+            self.read_lock.release()
             self.lock.release()
 
     def teach(self, name: str, point=None, result: GroundingResult | None = None,
@@ -47,7 +45,7 @@ class TeachWork:
 
         if not self.mapper.keyframes:
             return GroundingResult(False, f"cannot teach yet: {EMPTY_MAP}", query=str(name)[:200]), "", self.taught_names()
-        if not self._acquire(timeout):
+        if not self._changing(timeout):
             return (GroundingResult(False, f"map busy for {timeout:.1f} s (mapping); try again", query=str(name)[:200]),
                     "", self.taught_names())
         try:
@@ -63,14 +61,14 @@ class TeachWork:
             return (GroundingResult(False, f"teaching failed: {type(exc).__name__}: {exc}", query=str(name)[:200]),
                     "", self.mapper.taught.names())
         finally:
-            self.lock.release()
+            self._changed()
 
     def forget(self, name: str, timeout: float = 30.0) -> tuple[bool, str, int, list[str]]:
         """Forget every object taught as `name` (or a spelling of it). -> (success, message,
         objects forgotten, every name the map holds after the call)."""
         from rg_core.grounding.teach import forget
 
-        if not self._acquire(timeout):
+        if not self._changing(timeout):
             return False, f"map busy for {timeout:.1f} s (mapping); try again", 0, self.taught_names()
         try:
             if not len(self.mapper.taught):   # nothing to relabel: the record set says what is wrong
@@ -89,7 +87,7 @@ class TeachWork:
             self.log.error("forgetting %r failed: %s\n%s", str(name)[:80], exc, traceback.format_exc())
             return False, f"forgetting failed: {type(exc).__name__}: {exc}", 0, self.mapper.taught.names()
         finally:
-            self.lock.release()
+            self._changed()
 
     def taught_names(self) -> list[str]:
         """The names the map holds (no lock: a copy of a short list)."""

@@ -106,7 +106,9 @@ def map_scopes(mapper, field) -> dict[str, tuple[tuple, tuple]]:
         if len(f.latents) != len(g):
             f.sync()  # latents follow Gaussians added or pruned since the last training step
         tensors += (f.latents,)
-        rows = (id(f), f.revision, f.steps, f._pca[0] if getattr(f, "_pca", None) is not None else None,
-                id(f.scale_tf))
+        # A map snapshot's frozen field (map/snapshot.py) is named by the state it froze, so the
+        # snapshots that share it keep the tables warm.
+        rows = (getattr(f, "state_token", None) or id(f), f.revision, f.steps,
+                f._pca[0] if getattr(f, "_pca", None) is not None else None, id(f.scale_tf))
     return {"map": (tensors, (len(g),) + sup + rows), "supervision": ((), sup),
-            "field": ((f,) if f is not None else (), rows)}
+            "field": ((f.latents,) if f is not None else (), rows)}
