@@ -31,6 +31,7 @@ class CameraInput:
         self._last_info_time: float | None = None
         self._last_image_time: float | None = None
         self._first_image_time: float | None = None
+        self._color_frame: str | None = None   # header.frame_id of the latest colour image (input_watch.py)
         self.inputs = p.input_config()
         self.tf = TFBuffer(p.tf_cache_time, p.tf_extrapolation, p.tf_max_gap)
         self._tf_pending: list[tuple[float, Frame, object]] = []   # (deadline, frame without pose, pose message)
@@ -71,6 +72,7 @@ class CameraInput:
             if self._first_image_time is None:
                 self._first_image_time = now
             self._last_image_time = now
+            self._color_frame = msg.header.frame_id
             since = now - (self._last_info_time if self._last_info_time is not None else self._first_image_time)
             if since > self.p.camera_info_timeout:
                 self._warn("camera_info", f"no CameraInfo on {self.topics['info']} for {since:.1f} s: "

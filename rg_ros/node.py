@@ -3,8 +3,9 @@
 rg_core only.
 
 Parameters and names: params.py; the worker it drives: worker_setup.py; inputs: camera_input.py
-and tf_input.py; clicked points, teaching and forgetting: teaching.py; publishers and periodic
-publishing: outputs.py; running it (signals, executor): run.py.
+and tf_input.py (what is missing when none arrive: input_watch.py); clicked points, teaching and
+forgetting: teaching.py; publishers and periodic publishing: outputs.py; running it (signals,
+executor): run.py.
 """
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from rg_core.perception.query import parse_mode, query_problem
 
 from . import convert as cv
 from .camera_input import CameraInput
+from .input_watch import InputWatch
 from .outputs import NodeOutputs
 from .params import GROUND_SERVICE, NODE_NAME, check_unknown_params, declare_params
 from .teaching import Teaching
@@ -28,7 +30,7 @@ from .tf_input import TFInput
 from .worker_setup import make_worker
 
 
-class GroundingNode(CameraInput, TFInput, Teaching, NodeOutputs, Node):
+class GroundingNode(CameraInput, TFInput, InputWatch, Teaching, NodeOutputs, Node):
     def __init__(self, node_name: str = NODE_NAME, **kwargs):
         """Parameters come from rcl (--ros-args --params-file / -p, or `parameter_overrides`); a bad
         one is a ValueError naming it (rg-node prints it and exits 2). Names are relative (remapping)."""
@@ -50,6 +52,7 @@ class GroundingNode(CameraInput, TFInput, Teaching, NodeOutputs, Node):
         self._make_outputs(p)
         check_unknown_params(self, qos_only=True)   # qos_overrides.* exist once the entities do
         self._make_timers(p)
+        self._make_input_watch(p)
         self.worker.start()
         pose_from = {"tf": f"TF {p.map_frame} <- image frame", "topic": f"PoseStamped {self.topics.get('pose')}",
                      "odometry": f"Odometry {self.topics.get('pose')}"}[p.pose_source]
@@ -98,6 +101,8 @@ class GroundingNode(CameraInput, TFInput, Teaching, NodeOutputs, Node):
                 cam = self._camera[3] if self._camera is not None else None
             result = self.worker.ground(query, mode, int(request.max_results) or p.max_results, p.ground_timeout,
                                         cam_to_world=cam)
+            if not result.success and result.message.startswith("map is empty"):   # say what has not arrived
+                result.message = self.empty_map_message()
         stamp = self._stamp_now()
         try:
             response = cv.result_to_response(result, p.map_frame, stamp, response=response)

@@ -135,6 +135,9 @@ class NodeParams:
     status_period: float = _p(1.0, "seconds between /diagnostics messages", 0.05, 3600.0)
     camera_info_timeout: float = _p(5.0, "warn when images arrive but no CameraInfo came for this long (s)",
                                     0.0, 3600.0)
+    input_timeout: float = _p(5.0, "warn when no frame reached the map for this long (s), with what each input "
+                              "received, topics published with another transport and whether TF or CameraInfo "
+                              "is missing (0 = off)", 0.0, 3600.0)
     marker_alpha: float = _p(0.25, "opacity of the grounded boxes (CUBE markers)", 0.0, 1.0)
     scene_graph_period: float = _p(30.0, "seconds between ~/scene_graph updates (latched, with text markers on "
                                    "~/scene_graph_markers; rebuilt only when the map changed; 0 = after /ground "
