@@ -77,6 +77,8 @@ class MapWorker(MapReads, MapAdmin, TeachWork, IdleWork):
         self._kf_count = len(self.mapper.keyframes)
         self._init_reads()
         self._init_admin()
+        with self.lock:
+            self._publish()   # a start-up map answers from the first query on
 
     # ------------------------------------------------------------------------------ life cycle
 

@@ -51,8 +51,11 @@ def test_a_snapshot_does_not_change_while_the_map_does(live, synth_scene, text):
     assert before[0] and before[1]
     snap = take_snapshot(live)
     frozen = values(snap)
-    assert snapshot_bytes(snap, live) == live.field.latents.numel() * 4 + sum(
+    copied = live.field.latents.numel() * 4 + sum(   # the field and the supervision embeddings; no Gaussian
         p.numel() * 4 for mlp in (live.field.language_mlp, live.field.instance_mlp) for p in mlp.parameters())
+    copied += sum(t.numel() * t.element_size() for s in live.supervision.by_keyframe.values()
+                  for t in (s.embeddings, s.embeddings_view, s.model) if t is not None)
+    assert snapshot_bytes(snap, live) == copied
     # the live map moves on: field training, refinement, a new frame, eviction, a new keyframe set
     live.field.train(iters=5)
     live.refine(3, converge=False)
@@ -61,6 +64,10 @@ def test_a_snapshot_does_not_change_while_the_map_does(live, synth_scene, text):
     kf = live.keyframes[0]
     live.evict(len(live.gaussians) // 4, kf.K, kf.cam_to_world, int(kf.rgb.shape[1]), int(kf.rgb.shape[0]))
     live.field.sync()
+    k0 = next(iter(live.supervision.by_keyframe))
+    live.supervision.by_keyframe[k0].embeddings[0] = 0.0   # what a supervision pass's multi-view means do
+    frozen_emb = snap.supervision.by_keyframe[k0].embeddings
+    assert float(frozen_emb[0].abs().sum()) > 0, "the snapshot shared an embedding the live map edits in place"
     assert not same(values(live), frozen)          # it did change
     assert same(values(snap), frozen)              # the snapshot did not
     assert answer(snap, text, name) == before      # and answers as the map did when it was taken
@@ -79,6 +86,13 @@ def test_a_snapshot_shares_tensors_and_reuses_what_did_not_change(live):
     assert s3.field.latents is not s2.field.latents and torch.equal(s2.field.latents, s1.field.latents)
     live.refine(1, converge=False)                 # the optimiser makes new tensors: the snapshot keeps the old ones
     assert s3.gaussians.means is not live.gaussians.means
+    k0, k1 = list(live.supervision.by_keyframe)[:2]
+    live.supervision.by_keyframe[k0].embeddings[0] = 0.0   # an in-place edit is seen (torch's _version) ...
+    s4 = take_snapshot(live, s3)
+    assert s4.supervision is not s3.supervision
+    assert float(s4.supervision.by_keyframe[k0].embeddings[0].abs().sum()) == 0.0
+    assert float(s3.supervision.by_keyframe[k0].embeddings[0].abs().sum()) > 0.0
+    assert s4.supervision.by_keyframe[k1] is s3.supervision.by_keyframe[k1]   # ... and only that record is copied
 
 
 def test_query_caches_stay_warm_across_unchanged_snapshots(live, synth_scene, text):

@@ -1,11 +1,12 @@
 """A read-only snapshot of a map that readers (queries, saves) use while mapping goes on.
 
 The mapper never edits a Gaussian tensor in place (its optimiser and every add, split or prune make
-new tensors), keyframes are never edited, and supervision and taught records are replaced rather
-than edited (grounding/teach.py). So a snapshot shares all of those with the live map and copies only
-the containers that hold them (lists and dicts: a few kB). The one part training edits in place is
-the feature field (latent rows, MLP weights): a snapshot holds a frozen copy of it, made again only
-when the field changed (N x latent_dim floats plus the MLPs: 6.4 MB at 100k Gaussians of 16-d).
+new tensors) and keyframes are never edited, so a snapshot shares those with the live map and copies
+only the containers that hold them (lists and dicts: a few kB). Two parts are edited in place and are
+copied when they changed: the feature field (latent rows, MLP weights; N x latent_dim floats plus the
+MLPs, 6.4 MB at 100k Gaussians of 16-d) and the embeddings of each keyframe's supervision (a
+supervision pass rewrites old keyframes' multi-view means: M x D floats per keyframe; the masks are
+never edited and stay shared).
 
 A part that did not change since the previous snapshot is that snapshot's object itself, so the
 query caches (grounding/cache.py, keyed by identity) stay warm across snapshots.
@@ -22,10 +23,45 @@ def _field_key(f) -> tuple:
             id(f._pca), id(f.stop), f.mapper.supervision is not None and id(f.mapper.supervision.pca.pca))
 
 
+def _state(obj) -> tuple:
+    """Identity of each attribute of `obj`, with torch's in-place version for tensors."""
+    return tuple((k, id(v), getattr(v, "_version", None)) for k, v in vars(obj).items())
+
+
 def _sup_key(s) -> tuple:
     p = s.pca
-    return (id(s), tuple((k, id(v)) for k, v in s.by_keyframe.items()), id(p.pca), p.version, len(p.raw),
-            tuple(s.text_embeddings), s.taught_state, s.source)
+    return (id(s), tuple((k, id(v), _state(v)) for k, v in s.by_keyframe.items()), id(p.pca), p.version,
+            len(p.raw), tuple(s.text_embeddings), s.taught_state, s.source)
+
+
+_EDITED = ("embeddings", "embeddings_view", "model")   # tensors a supervision pass or teaching edits in place
+
+
+def _copy_keyframe_sup(sup):
+    c = copy.copy(sup)
+    for name in _EDITED:
+        t = getattr(sup, name)
+        if t is not None:
+            setattr(c, name, t.clone())
+    c.seconds = dict(sup.seconds)
+    return c
+
+
+def _copy_supervision(sset, prev):
+    """A copy of SupervisionSet `sset` whose per-keyframe records never change; records unchanged
+    since `prev` (an earlier copy) are reused."""
+    old = prev.by_keyframe if prev is not None else {}
+    keys = getattr(prev, "_record_keys", {}) if prev is not None else {}
+    s = copy.copy(sset)
+    s.by_keyframe, s._record_keys = {}, {}
+    for k, sup in sset.by_keyframe.items():
+        key = (id(sup), _state(sup))
+        s.by_keyframe[k] = old[k] if k in old and keys.get(k) == key else _copy_keyframe_sup(sup)
+        s._record_keys[k] = key
+    s.text_embeddings = dict(sset.text_embeddings)
+    s.pca = copy.copy(sset.pca)
+    s.pca.raw = [c.embeddings for c in s.by_keyframe.values() if len(c.embeddings)]
+    return s
 
 
 def freeze_field(f, mapper):
@@ -67,12 +103,7 @@ def take_snapshot(mapper, previous=None):
     elif prev is not None and prev._sup_key == _sup_key(sset):
         snap.supervision = prev.supervision
     else:
-        s = copy.copy(sset)
-        s.by_keyframe = dict(sset.by_keyframe)
-        s.text_embeddings = dict(sset.text_embeddings)
-        s.pca = copy.copy(sset.pca)
-        s.pca.raw = list(sset.pca.raw)
-        snap.supervision = s
+        snap.supervision = _copy_supervision(sset, prev.supervision if prev is not None else None)
     snap._sup_key = _sup_key(sset) if sset is not None else None
     f = getattr(mapper, "field", None)
     if f is None:
@@ -100,6 +131,9 @@ def snapshot_bytes(snap, live) -> int:
     if f is not None and f is not lf:
         own += f.latents.numel() * f.latents.element_size()
         own += sum(p.numel() * p.element_size() for m in (f.language_mlp, f.instance_mlp) for p in m.parameters())
+    if snap.supervision is not None and snap.supervision is not live.supervision:
+        own += sum(t.numel() * t.element_size() for sup in snap.supervision.by_keyframe.values()
+                   for t in (getattr(sup, n) for n in _EDITED) if t is not None)
     return int(own)
 
 
