@@ -146,8 +146,7 @@ def node_teach(map_path: Path, clicks, work: Path, timeout: float = 180.0) -> di
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PointStamped
-    from rg_interfaces.srv import Teach
-    from std_srvs.srv import Trigger
+    from rg_interfaces.srv import MapFile, Teach
 
     from rg_ros.endurance import status_values, stop_process, write_params
     from rg_ros.run import NodeExecutor
@@ -165,7 +164,7 @@ def node_teach(map_path: Path, clicks, work: Path, timeout: float = 180.0) -> di
     status: dict = {}
     probe.create_subscription(DiagnosticArray, "/diagnostics", lambda m: status.update(status_values(m)), 10)
     teach_cli = probe.create_client(Teach, "/rg_node/teach")
-    save_cli = probe.create_client(Trigger, "/rg_node/save_map")
+    save_cli = probe.create_client(MapFile, "/rg_node/save_map")
     clicked = probe.create_publisher(PointStamped, "/clicked_point", 10)
     ex = NodeExecutor(context=ctx)
     ex.add_node(probe)
@@ -212,7 +211,7 @@ def node_teach(map_path: Path, clicks, work: Path, timeout: float = 180.0) -> di
             if not res.success:
                 out["refused"].append(f"{c.name}: {res.message}")
             out["seconds"].append(time.perf_counter() - t)
-        res = call(save_cli, Trigger.Request())
+        res = call(save_cli, MapFile.Request())
         if not res.success:
             raise RuntimeError(f"~/save_map: {res.message}")
     finally:

@@ -95,8 +95,7 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
     """Run the node against `scene` (a scene folder) for cfg.frames frames; -> samples and summary."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
-    from rg_interfaces.srv import Ground
-    from std_srvs.srv import Trigger
+    from rg_interfaces.srv import Ground, MapFile
     from tqdm import tqdm
 
     from .run import NodeExecutor
@@ -123,7 +122,7 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
 
     probe.create_subscription(DiagnosticArray, "/diagnostics", on_status, 10)
     client = probe.create_client(Ground, "/ground")
-    saver = probe.create_client(Trigger, "/rg_node/save_map")
+    saver = probe.create_client(MapFile, "/rg_node/save_map")
     executor = NodeExecutor(context=ctx)
     executor.add_node(probe)
     spin = threading.Thread(target=executor.spin, daemon=True)
@@ -162,7 +161,7 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
             while not stop.is_set():
                 q = cfg.queries[i % len(cfg.queries)]
                 t = time.monotonic()
-                save = saver.call_async(Trigger.Request()) if cfg.save_every and i % cfg.save_every == 0 else None
+                save = saver.call_async(MapFile.Request()) if cfg.save_every and i % cfg.save_every == 0 else None
                 res = client.call(Ground.Request(query=q), timeout_sec=cfg.ground_timeout)
                 dt = time.monotonic() - t
                 if save is not None:

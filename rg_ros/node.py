@@ -1,5 +1,6 @@
-"""The ROS 2 node: subscriptions -> approximate time sync -> MapWorker; /ground, ~/save_map, ~/reset,
-~/teach, ~/forget; masks, clouds, markers and diagnostics out. Thin: message conversion and calls into
+"""The ROS 2 node: subscriptions -> approximate time sync -> MapWorker; /ground, ~/reset, ~/teach,
+~/forget, and the map-server services (~/save_map, ~/load_map, ~/pause_mapping, ~/resume_mapping:
+map_services.py); masks, clouds, markers and diagnostics out. Thin: message conversion and calls into
 rg_core only.
 
 Parameters and names: params.py; the worker it drives: worker_setup.py; inputs: camera_input.py
@@ -23,6 +24,7 @@ from rg_core.perception.query import parse_mode, query_problem
 from . import convert as cv
 from .camera_input import CameraInput
 from .input_watch import InputWatch
+from .map_services import MapServices
 from .outputs import NodeOutputs
 from .params import GROUND_SERVICE, NODE_NAME, check_unknown_params, declare_params
 from .teaching import Teaching
@@ -30,7 +32,7 @@ from .tf_input import TFInput
 from .worker_setup import make_worker
 
 
-class GroundingNode(CameraInput, TFInput, InputWatch, Teaching, NodeOutputs, Node):
+class GroundingNode(CameraInput, TFInput, InputWatch, Teaching, MapServices, NodeOutputs, Node):
     def __init__(self, node_name: str = NODE_NAME, **kwargs):
         """Parameters come from rcl (--ros-args --params-file / -p, or `parameter_overrides`); a bad
         one is a ValueError naming it (rg-node prints it and exits 2). Names are relative (remapping)."""
@@ -66,9 +68,8 @@ class GroundingNode(CameraInput, TFInput, InputWatch, Teaching, NodeOutputs, Nod
         from rg_interfaces.srv import Ground
 
         self.create_service(Ground, GROUND_SERVICE, self._on_ground, callback_group=MutuallyExclusiveCallbackGroup())
-        admin = MutuallyExclusiveCallbackGroup()
-        self.create_service(Trigger, "~/save_map", self._on_save, callback_group=admin)
-        self.create_service(Trigger, "~/reset", self._on_reset, callback_group=admin)
+        self.create_service(Trigger, "~/reset", self._on_reset, callback_group=MutuallyExclusiveCallbackGroup())
+        self._make_map_services()
 
     # ------------------------------------------------------------------------------ helpers
 
@@ -86,6 +87,13 @@ class GroundingNode(CameraInput, TFInput, InputWatch, Teaching, NodeOutputs, Nod
     # ------------------------------------------------------------------------------ services
 
     def _on_ground(self, request, response):
+        t = time.perf_counter()
+        try:
+            return self._answer_ground(request, response)
+        finally:   # what the caller waited (diagnostics: query_latency_s over the last minute)
+            self.worker.latency.add(time.perf_counter() - t)
+
+    def _answer_ground(self, request, response):
         p = self.p
         query = request.query
         t = time.perf_counter()
@@ -119,20 +127,6 @@ class GroundingNode(CameraInput, TFInput, InputWatch, Teaching, NodeOutputs, Nod
             log.warning(f"ground '{short}' failed: {result.message}")
         if "graph" in result.timings:   # the answer built or used the scene graph: publish it if new
             self._on_scene_graph()
-        return response
-
-    def _on_save(self, request, response):
-        path = Path(self.p.save_path).expanduser()
-        try:
-            out = self.worker.save(path)
-        except Exception as exc:  # noqa: BLE001
-            response.success, response.message = False, f"could not save {path}: {type(exc).__name__}: {exc}"
-            self.get_logger().error(response.message)
-            return response
-        st = self.worker.stats()
-        response.success = True
-        response.message = f"saved {out.resolve()} ({st['keyframes']} keyframes, {st['gaussians']} Gaussians)"
-        self.get_logger().info(response.message)
         return response
 
     def _on_reset(self, request, response):

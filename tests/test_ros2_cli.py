@@ -209,6 +209,37 @@ def test_ros2_service_call_ground(launched):
     assert "frame_id='map'" in out
 
 
+def test_ros2_service_call_map_server_services(launched):
+    """The literal calls of the map-server services: pause, a query while paused, resume, save to a
+    path given in the request, load it back, and a load of a missing file that leaves the map."""
+    from rg_core.map.store import load_map
+
+    def call(service: str, kind: str, request: str = "{}") -> str:
+        r = ros2("service", "call", service, kind, request, timeout=180)
+        out = r.stdout + r.stderr
+        assert r.returncode == 0, out[-3000:]
+        return out
+
+    out = call("/rg_node/pause_mapping", "std_srvs/srv/Trigger")
+    assert "success=True" in out and "mapping paused" in out, out[-2000:]
+    out = call("/ground", "rg_interfaces/srv/Ground", "{query: 'a box'}")
+    assert "Ground_Response(success=True" in out, out[-2000:]   # answered while paused
+    out = call("/rg_node/resume_mapping", "std_srvs/srv/Trigger")
+    assert "success=True" in out and "mapping resumed" in out, out[-2000:]
+    path = launched["tmp"] / "served.rgmap"
+    out = call("/rg_node/save_map", "rg_interfaces/srv/MapFile", f"{{path: '{path}'}}")
+    assert "success=True" in out and f"saved {path}" in out, out[-2000:]
+    m = load_map(path)
+    assert len(m.keyframes) >= 1 and len(m.gaussians) > 0
+    out = call("/rg_node/load_map", "rg_interfaces/srv/MapFile", f"{{path: '{path}'}}")
+    assert "success=True" in out and f"loaded {path} ({len(m.keyframes)} keyframes, {len(m.gaussians)} Gaussians)" in out, \
+        out[-2000:]
+    out = call("/rg_node/load_map", "rg_interfaces/srv/MapFile", f"{{path: '{path}.missing'}}")
+    assert "success=False" in out and "map file not found; the current map is unchanged" in out, out[-2000:]
+    out = call("/ground", "rg_interfaces/srv/Ground", "{query: 'a box'}")
+    assert "Ground_Response(success=True" in out, out[-2000:]
+
+
 def test_ros2_topic_echo_markers_and_amodal_mask(launched):
     """After the call above: the markers are latched (transient local) and the masks stream at mask_rate."""
     # the QoS said explicitly: a fresh CLI node that has not discovered the publisher yet would fall

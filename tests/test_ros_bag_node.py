@@ -26,7 +26,7 @@ import rclpy  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import TransformStamped  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
-from rg_interfaces.srv import Ground  # noqa: E402
+from rg_interfaces.srv import Ground, MapFile  # noqa: E402
 from sensor_msgs.msg import CameraInfo, CompressedImage  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 from tf2_msgs.msg import TFMessage  # noqa: E402
@@ -335,7 +335,7 @@ def test_odometry_pose_source(h):
             tfs("base_link", "camera_link", _T(_rot_y(BASE_FROM_CAMLINK_PITCH), BASE_FROM_CAMLINK_T), 0.0),
             tfs("camera_link", OPTICAL_FRAME, BODY_FROM_OPTICAL, 0.0)]))
         wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs + [pub_odom]), 60, "node C subscriptions")
-        save_client = h.node.create_client(Trigger, "/rg_node_c/save_map")
+        save_client = h.node.create_client(MapFile, "/rg_node_c/save_map")
         def received():
             return h.statuses.get("/rg_node_c", {}).get("received", 0)
 
@@ -358,7 +358,7 @@ def test_odometry_pose_source(h):
         wait_for(lambda: h.statuses.get("/rg_node_c", {}).get("frames", 0) >= 3
                  and h.statuses["/rg_node_c"]["queue"] == 0, 90,
                  lambda: f"node C to map 3 frames (status {h.statuses.get('/rg_node_c')})")
-        res = h.call(save_client, Trigger.Request())
+        res = h.call(save_client, MapFile.Request())
         assert res.success, res.message
         kfs = {round(kf.stamp, 3): kf for kf in load_map(save).keyframes}
         assert kfs, "no keyframe"

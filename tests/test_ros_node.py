@@ -32,7 +32,7 @@ import rclpy  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rclpy.qos import qos_profile_sensor_data  # noqa: E402
-from rg_interfaces.srv import Ground  # noqa: E402
+from rg_interfaces.srv import Ground, MapFile  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
@@ -126,7 +126,7 @@ class Harness:
         self.node.create_subscription(PointCloud2, "/rg_node/grounded_cloud", lambda m: self.msgs["grounded"].append(m), 10)
         self.node.create_subscription(MarkerArray, "/rg_node/markers", lambda m: self.msgs["markers"].append(m), 10)
         self.ground = self.node.create_client(Ground, "/ground")
-        self.save = self.node.create_client(Trigger, "/rg_node/save_map")
+        self.save = self.node.create_client(MapFile, "/rg_node/save_map")
         self.reset = self.node.create_client(Trigger, "/rg_node/reset")
         self.pubs: dict[str, list] = {}
         self.executor = NodeExecutor(context=self.ctx)
@@ -364,7 +364,7 @@ def test_grounded_cloud_lies_in_the_targets_box(h):
 def test_save_map_writes_a_loadable_map(h):
     from rg_core.map.store import load_map
 
-    res = h.call(h.save, Trigger.Request())
+    res = h.call(h.save, MapFile.Request())
     assert res.success and str(h.save_a) in res.message
     m = load_map(h.save_a)
     assert len(m.keyframes) > 0 and len(m.gaussians) > 0

@@ -24,7 +24,7 @@ from test_ros_node import TOPICS_A, ros_args, start, status_values, stop, wait_f
 pytest.importorskip("rg_interfaces.srv", reason="rg_interfaces is not installed: scripts/bootstrap.sh builds it from msg/")
 pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs is not installed: scripts/bootstrap.sh builds it from msg_tf2/")
 try:
-    from rg_interfaces.srv import Forget, Ground, Teach
+    from rg_interfaces.srv import Forget, Ground, MapFile, Teach
 except ImportError:   # pragma: no cover - an rg_interfaces built before Teach.srv
     pytest.skip("rg_interfaces predates Teach.srv and Forget.srv: rerun scripts/bootstrap.sh", allow_module_level=True)
 
@@ -105,7 +105,7 @@ class Harness(NodeHarness):
         self.teach = n.create_client(Teach, "/rg_node/teach")
         self.forget = n.create_client(Forget, "/rg_node/forget")
         self.ground = n.create_client(Ground, "/ground")
-        self.save = n.create_client(Trigger, "/rg_node/save_map")
+        self.save = n.create_client(MapFile, "/rg_node/save_map")
         self.clicked = n.create_publisher(PointStamped, "/clicked_point", 10)
         tf = n.create_publisher(TFMessage, "/tf_static", LATCHED)
         t = TransformStamped()
@@ -316,7 +316,7 @@ def test_bad_input_is_refused_and_changes_nothing(mapped):
 
 def test_save_then_forget_then_a_restarted_node_still_knows(mapped):
     h = mapped
-    res = h.call(h.save, Trigger.Request())
+    res = h.call(h.save, MapFile.Request())
     assert res.success and str(h.saved) in res.message, res.message
     if ROS2 is not None:
         out = ros2("service", "call", "/rg_node/forget", "rg_interfaces/srv/Forget", "{name: 'blue mug'}")
