@@ -32,6 +32,8 @@ class EnduranceConfig:
     queries: tuple[str, ...] = ("orange", "the biggest object", "something to eat")
     faults_every: int = 0          # rg-replay --faults: a bad pose, a pose/TF gap, a 100-frame burst in turn (rg_ros.replay.Faults)
     save_every: int = 0            # every Nth /ground call goes out together with a ~/save_map call
+    save_period: float = 0.0       # > 0: a second client calls ~/save_map every this many seconds (issue 62)
+    code_dir: str = ""             # run the node from this checkout (a baseline), put first on PYTHONPATH
     params: dict = field(default_factory=lambda: dict(
         pose_source="topic", map_width=80, iters_per_keyframe=2, torch_threads=1, frame_queue_size=4,
         features=True, train_slice=0.5, train_seconds_max=2.0, status_period=0.5, mask_rate=0.0,
@@ -103,11 +105,14 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
     work.mkdir(parents=True, exist_ok=True)
     params = write_params(work / "endurance.yaml", {"save_path": str(work / "endurance_map.pt"), **cfg.params})
     env = dict(os.environ, RCUTILS_LOGGING_BUFFERED_STREAM="0")
+    node_env = dict(env)
+    if cfg.code_dir:
+        node_env["PYTHONPATH"] = os.pathsep.join([cfg.code_dir, env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
     from .params import INPUTS
 
     remap = [a for name, target in INPUTS.items() for a in ("-r", f"{name}:={target}")]   # where rg-replay publishes
     node = subprocess.Popen([sys.executable, "-m", "rg_ros.tools", "node", "--params", str(params), "--ros-args",
-                             *remap], env=env,
+                             *remap], env=node_env,
                             stdout=(work / "node.log").open("w"), stderr=subprocess.STDOUT)
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
@@ -122,12 +127,13 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
 
     probe.create_subscription(DiagnosticArray, "/diagnostics", on_status, 10)
     client = probe.create_client(Ground, "/ground")
-    saver = probe.create_client(MapFile, "/rg_node/save_map")
+    save_type = MapFile
+    saver = None
     executor = NodeExecutor(context=ctx)
     executor.add_node(probe)
     spin = threading.Thread(target=executor.spin, daemon=True)
     spin.start()
-    samples, calls, saves = [], [], []
+    samples, calls, saves, save_log = [], [], [], []
     replay, warm = None, {}
     stop = threading.Event()
     t0 = time.monotonic()
@@ -137,6 +143,11 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
             time.sleep(0.2)
         if node.poll() is not None or not status:
             raise RuntimeError(f"rg-node did not come up: {(work / 'node.log').read_text()[-2000:]}")
+        # ~/save_map is rg_interfaces/srv/MapFile since issue 62, std_srvs/srv/Trigger before (a baseline)
+        types = dict(probe.get_service_names_and_types())
+        if "std_srvs/srv/Trigger" in types.get("/rg_node/save_map", []):
+            from std_srvs.srv import Trigger as save_type
+        saver = probe.create_client(save_type, "/rg_node/save_map")
         # Warm-up, not measured: models load, the first keyframes are supervised and the field trains
         # once. The run then measures the steady state a robot lives in for hours.
         subprocess.run([sys.executable, "-m", "rg_ros.tools", "replay", str(scene), "--rate", "4", "--wait", "60"],
@@ -161,7 +172,7 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
             while not stop.is_set():
                 q = cfg.queries[i % len(cfg.queries)]
                 t = time.monotonic()
-                save = saver.call_async(MapFile.Request()) if cfg.save_every and i % cfg.save_every == 0 else None
+                save = saver.call_async(save_type.Request()) if cfg.save_every and i % cfg.save_every == 0 else None
                 res = client.call(Ground.Request(query=q), timeout_sec=cfg.ground_timeout)
                 dt = time.monotonic() - t
                 if save is not None:
@@ -175,8 +186,24 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
                 i += 1
                 stop.wait(max(0.0, cfg.ground_period - dt))
 
+        def periodic_saver():
+            saver.wait_for_service(timeout_sec=60)
+            while not stop.wait(cfg.save_period):
+                t = time.monotonic()
+                fut = saver.call_async(save_type.Request())
+                end = t + cfg.ground_timeout
+                while not fut.done() and time.monotonic() < end:
+                    time.sleep(0.02)
+                r = fut.result() if fut.done() else None
+                save_log.append({"t": t - t0, "seconds": time.monotonic() - t if r is not None else None,
+                                 "success": bool(r is not None and r.success),
+                                 "message": (r.message if r is not None else "no reply")[:100]})
+
         ground = threading.Thread(target=caller, daemon=True)
-        ground.start()
+        if cfg.ground_period > 0:
+            ground.start()
+        if cfg.save_period > 0:
+            threading.Thread(target=periodic_saver, daemon=True).start()
         bar = tqdm(total=cfg.frames, desc="endurance", unit="frame", disable=not progress, file=sys.stderr)
         while replay.poll() is None and node.poll() is None:
             st = dict(status)
@@ -195,7 +222,8 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
         bar.close()
         time.sleep(3 * cfg.sample_period)   # the last frames in flight
         stop.set()
-        ground.join(cfg.ground_timeout + 5)
+        if ground.is_alive():
+            ground.join(cfg.ground_timeout + 5)
         crashed = node.poll() is not None
     finally:
         stop.set()
@@ -207,10 +235,21 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
         ctx.try_shutdown()
     summary = summarise(samples, calls, crashed)
     warmup = {k: warm.get(k) for k in ("received", "mapped", "keyframes", "gaussians", "field_stop")}
+    lat = np.array([c["seconds"] for c in calls if c["seconds"] is not None], float)
+    during_save = [c["seconds"] for c in calls if c["seconds"] is not None and any(
+        x["seconds"] is not None and x["t"] <= c["t"] <= x["t"] + x["seconds"] for x in save_log)]
+    summary.update(latency_p50_s=float(np.percentile(lat, 50)) if len(lat) else float("nan"),
+                   latency_p95_s=float(np.percentile(lat, 95)) if len(lat) else float("nan"),
+                   latency_max_s=float(lat.max()) if len(lat) else float("nan"),
+                   calls_during_save=len(during_save),
+                   latency_max_during_save_s=float(max(during_save)) if during_save else float("nan"),
+                   mapped_per_s=(summary["frames_mapped"] or 0) / summary["seconds"] if summary["seconds"] else 0.0,
+                   periodic_saves=len(save_log), periodic_saves_ok=sum(x["success"] for x in save_log),
+                   save_seconds_max=max((x["seconds"] or 0.0 for x in save_log), default=0.0))
     summary.update(faults_injected=_faults_logged(work / "replay.log"), saves=len(saves), saves_ok=sum(saves),
                    keyframes_min_after_warmup=min((x["keyframes"] or 0 for x in samples), default=0),
                    keyframes_at_warmup=warmup["keyframes"])
-    return {"samples": samples, "calls": calls, "crashed": crashed, "node_exit": node.returncode,
+    return {"samples": samples, "calls": calls, "saves": save_log, "crashed": crashed, "node_exit": node.returncode,
             "warmup": warmup, "summary": summary}
 
 
