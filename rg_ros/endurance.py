@@ -155,7 +155,8 @@ def run(scene: Path, work: Path, cfg: EnduranceConfig, progress: bool = True) ->
                        timeout=cfg.warmup_timeout)
         end = time.monotonic() + cfg.warmup_timeout
         while time.monotonic() < end and node.poll() is None and not (
-                status.get("field_stop") and status.get("queue") == 0 and status.get("received", 0) > 0):
+                status.get("field_stop") and status.get("queue") == 0 and status.get("received", 0) > 0
+                and status.get("grounding_models", "loaded") == "loaded"):   # older nodes do not say
             time.sleep(0.5)
         warm = dict(status)
         t0 = time.monotonic()

@@ -31,16 +31,18 @@ class IdleWork:
         here rather than in the first query. One step; a failure is logged and left to that query."""
         if self._models_loaded or self.field is None or self.field.stop is None:
             return False
-        self._models_loaded = True
         t = time.perf_counter()
         with self.lock:
             try:
                 self._ensure_grounder().load_models()
                 with self.read_lock:   # the readers' Grounder takes the loaded models
+                    self._reader_for(self._snap)
                     self._share_models()
                 self.log.info("grounding models loaded ahead of the first query (%.2f s)", time.perf_counter() - t)
             except Exception as exc:  # noqa: BLE001 - the first query says what is missing
                 self.log.warning("grounding models not loaded ahead: %s: %s", type(exc).__name__, exc)
+            finally:
+                self._models_loaded = True   # tried once (diagnostics: grounding_models)
         return True
 
     def _supervise(self) -> bool:
@@ -55,7 +57,8 @@ class IdleWork:
             t = time.perf_counter()
             try:
                 sset, mv = supervise_map_multiview(self.mapper, gen, emb,
-                                                   views_per_object=self.cfg.models.views_per_object)
+                                                   views_per_object=self.cfg.models.views_per_object,
+                                                   between=self._give_way)
             except Exception as exc:  # noqa: BLE001 - a perception failure must not stop mapping
                 self.log.error("supervision failed, feature training is off: %s: %s", type(exc).__name__, exc)
                 self.wcfg.features = False

@@ -120,13 +120,14 @@ class GroundingNode(CameraInput, TFInput, InputWatch, Teaching, MapServices, Nod
             return response
         log = self.get_logger()
         short = query[:60] + ("..." if len(query) > 60 else "")
+        graph = "graph" in result.timings   # the answer built or used the scene graph: publish it if new
         if result.success:
             log.info(f"ground '{short}': {result.message} ({time.perf_counter() - t:.2f} s)")
-            self._publish_answer(result, response.cloud, stamp)
+            self._publish_answer(result, response.cloud, stamp, graph=graph)
         else:
             log.warning(f"ground '{short}' failed: {result.message}")
-        if "graph" in result.timings:   # the answer built or used the scene graph: publish it if new
-            self._on_scene_graph()
+            if graph:
+                self._answers.put((None, None, stamp, True))
         return response
 
     def _on_reset(self, request, response):
@@ -147,6 +148,7 @@ class GroundingNode(CameraInput, TFInput, InputWatch, Teaching, MapServices, Nod
     def shutdown(self, timeout: float = 30.0) -> None:
         """Stop the worker after its current step; save the map if save_on_shutdown."""
         log = self.get_logger()
+        self._answers.put(None)   # the answer publisher ends
         if not self.worker.stop(timeout):
             log.warning(f"mapping worker did not stop within {timeout:.0f} s")
         if self.p.save_on_shutdown:

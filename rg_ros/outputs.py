@@ -4,6 +4,7 @@ masks of the last answer in the current camera, the scene graph, the map cloud, 
 from __future__ import annotations
 
 import json
+import queue
 import threading
 
 import numpy as np
@@ -42,6 +43,8 @@ class NodeOutputs:
         self.pub_graph_markers = pub(MarkerArray, "~/scene_graph_markers", latched)
         self.pub_map_cloud = pub(PointCloud2, "~/map_cloud", 1)
         self.pub_status = pub(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
+        self._answers: queue.SimpleQueue = queue.SimpleQueue()   # answers to publish (_answer_thread)
+        threading.Thread(target=self._answer_thread, name="rg-answer-publisher", daemon=True).start()
 
     def _make_timers(self, p: NodeParams) -> None:
         """Status always; masks, map cloud and scene graph at their rates (0: off)."""
@@ -62,17 +65,39 @@ class NodeOutputs:
             self._graph_sent = None
         self.pub_graph_markers.publish(graph_markers([], np.array([0.0, 0.0, 1.0]), self.p.map_frame, self._stamp_now()))
 
-    def _publish_answer(self, result: GroundingResult, cloud=None, stamp=None) -> None:
-        """Make `result` (a /ground, clicked-point or teach answer) the current answer: its grounded
-        cloud and markers (latched) now, its masks on the current camera now and at mask_rate."""
+    def _publish_answer(self, result: GroundingResult, cloud=None, stamp=None, graph: bool = False) -> None:
+        """Make `result` (a /ground, clicked-point or teach answer) the current answer now, and publish
+        its grounded cloud and markers (latched), its masks on the current camera (then at mask_rate)
+        and, with `graph`, the scene graph if it changed, from the answer thread: the service's reply
+        does not wait for them (the newest answer wins when they fall behind)."""
         stamp = stamp if stamp is not None else self._stamp_now()
-        if cloud is None:
-            cloud = cv.result_to_response(result, self.p.map_frame, stamp).cloud
         with self._state_lock:
             self._last_result = result
-        self.pub_grounded.publish(cloud)
-        self.pub_markers.publish(result_markers(result, self.p.map_frame, stamp, box_alpha=self.p.marker_alpha))
-        self._on_masks()
+        self._answers.put((result, cloud, stamp, graph))
+
+    def _answer_thread(self) -> None:
+        while True:
+            item = self._answers.get()
+            if item is None:
+                return
+            while not self._answers.empty():   # only the newest answer is worth drawing
+                nxt = self._answers.get()
+                if nxt is None:
+                    return
+                item = nxt[:3] + (nxt[3] or item[3],) if nxt[0] is not None else item[:3] + (True,)
+            result, cloud, stamp, graph = item
+            try:
+                if result is not None:
+                    if cloud is None:
+                        cloud = cv.result_to_response(result, self.p.map_frame, stamp).cloud
+                    self.pub_grounded.publish(cloud)
+                    self.pub_markers.publish(result_markers(result, self.p.map_frame, stamp,
+                                                            box_alpha=self.p.marker_alpha))
+                    self._on_masks()
+                if graph:
+                    self._on_scene_graph()
+            except Exception as exc:  # noqa: BLE001 - the node lives; a shutdown mid-publish ends here
+                self._warn("answer_publish", f"answer not published: {type(exc).__name__}: {exc}")
 
     def _on_masks(self) -> None:
         with self._state_lock:

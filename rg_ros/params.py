@@ -46,6 +46,13 @@ class WorkerConfig:
     """Map refinement iterations per idle slice (0 = off), at most map.final_iters per keyframe."""
     idle_wait: Annotated[float, Interval(gt=0.0, le=60.0)] = 0.2
     """Seconds the worker sleeps waiting for a frame when it has nothing else to do."""
+    slow_query: Annotated[float, Interval(gt=0.0)] = 0.5
+    """A /ground answer slower than this (s) is logged with where its time went."""
+    mapping_nice: Annotated[int, Interval(ge=0, le=19)] = 10
+    """Niceness of the mapping thread (Linux, per thread): queries and callbacks get the CPU first."""
+    yield_to_queries: Annotated[float, Interval(ge=0.0, le=60.0)] = 2.0
+    """Seconds at most the mapping thread waits before its next unit of work while a /ground or
+    point query runs (queries never wait for mapping; this gives them the CPU; 0 = never wait)."""
 
     def __post_init__(self):
         check_fields(self)
@@ -147,7 +154,7 @@ class NodeParams:
         return InputConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(InputConfig)})
 
     def worker_config(self) -> WorkerConfig:
-        names = {f.name for f in dataclasses.fields(WorkerConfig)} - {"queue_size", "idle_wait"}
+        names = {f.name for f in dataclasses.fields(WorkerConfig)} - {"queue_size", "idle_wait", "yield_to_queries", "mapping_nice", "slow_query"}
         return WorkerConfig(queue_size=self.frame_queue_size, **{n: getattr(self, n) for n in names})
 
 

@@ -62,6 +62,11 @@ class MapReads:
         self._snap = None            # the newest snapshot (a Mapper sharing the live map's tensors)
         self._stale_since = None     # monotonic time the live map last moved past the snapshot, or None
         self._reader = None          # the Grounder queries run on (pointed at the newest snapshot)
+        self.read_waited = 0.0       # s the latest read waited for another one
+        self._asking = 0             # /ground and point answers in flight: the mapping thread starts no new unit
+        self._asking_lock = threading.Lock()
+        self._no_asking = threading.Event()
+        self._no_asking.set()
 
     # ------------------------------------------------------------------------------ publishing
 
@@ -118,13 +123,30 @@ class MapReads:
                 setattr(b, name, getattr(a, name))
         b._text_cache = a._text_cache
 
+    def _asked(self, delta: int) -> None:
+        """Count a query in flight (+1) or done (-1). While one is, the mapping thread starts no new
+        unit of work and a training slice ends after its step: the query has the CPU, yet waits for nothing."""
+        with self._asking_lock:
+            self._asking += delta
+            (self._no_asking.set if self._asking == 0 else self._no_asking.clear)()
+
+    def asking(self) -> bool:
+        return not self._no_asking.is_set()
+
+    def _give_way(self) -> None:
+        """Inside a long unit of mapping work (between a supervision pass's keyframes): wait while
+        a query runs (at most yield_to_queries s)."""
+        self._no_asking.wait(self.wcfg.yield_to_queries)
+
     def _read(self, what: str, timeout: float):
         """(snapshot, grounder) with read_lock held, or (None, unsuccessful result) saying why."""
         snap = self.current()
         if snap is None or not snap.keyframes:
             return None, GroundingResult(False, EMPTY_MAP, query=what)
+        t = time.perf_counter()
         if not self.read_lock.acquire(timeout=timeout if timeout > 0 else -1):
             return None, GroundingResult(False, f"another query held the map for {timeout:.1f} s; try again", query=what)
+        self.read_waited = time.perf_counter() - t
         try:
             snap = self._snap or snap
             return snap, self._reader_for(snap)
@@ -146,12 +168,25 @@ class MapReads:
         problem = query_problem(query, self.cfg.ground.max_query_chars)
         if problem:
             return GroundingResult(False, problem, query=str(query)[:200])
+        self._asked(+1)
+        try:
+            return self._ground(query, mode, max_results, timeout, cam_to_world)
+        finally:
+            self._asked(-1)
+
+    def _ground(self, query, mode, max_results, timeout, cam_to_world) -> GroundingResult:
         snap, g = self._read(query, timeout)
         if snap is None:
             return g
         try:
+            t = time.perf_counter()
             res = g.ground(query, mode=mode, max_results=max_results, cam_to_world=cam_to_world,
                            camera="the robot's current camera")
+            dt = time.perf_counter() - t
+            if dt + self.read_waited > self.wcfg.slow_query:   # what a slow answer spent its time on
+                self.log.warning("slow answer to '%s': %.2f s grounding (%s), %.2f s waiting for another read",
+                                 query[:60], dt, ", ".join(f"{k} {v:.2f}" for k, v in res.timings.items()
+                                                           if k != "field_training"), self.read_waited)
             self._protect(res)
             return res
         except ImportError as exc:   # a stage of the pipeline (reasoner, text encoder) has not landed
@@ -168,8 +203,10 @@ class MapReads:
         raises: bad input, nothing mapped there or a busy map is an unsuccessful result saying why."""
         from rg_core.grounding.point import point_answer
 
+        self._asked(+1)
         snap, g = self._read("point", timeout)
         if snap is None:
+            self._asked(-1)
             return g
         try:
             res = point_answer(g, point)
@@ -180,6 +217,7 @@ class MapReads:
             return GroundingResult(False, f"point answer failed: {type(exc).__name__}: {exc}", query="point")
         finally:
             self.read_lock.release()
+            self._asked(-1)
 
     def scene_graph(self, timeout: float = 30.0) -> tuple[list, list, np.ndarray] | None:
         """(objects, relations, up) of the newest snapshot's scene graph (relations.build_graph,

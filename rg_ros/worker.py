@@ -16,6 +16,7 @@ training slice ends after its current step.
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import traceback
 from pathlib import Path
@@ -117,12 +118,17 @@ class MapWorker(MapReads, MapAdmin, TeachWork, IdleWork):
     # ------------------------------------------------------------------------------ the thread
 
     def _run(self) -> None:
+        try:   # mapping runs at a lower CPU priority than the callbacks and queries (Linux: per thread)
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), self.wcfg.mapping_nice)
+        except (AttributeError, OSError, PermissionError):
+            pass
         try:
             busy = False
             while not self._stop.is_set():
                 frame = self.queue.get(timeout=0 if busy else self.wcfg.idle_wait)
                 while not self._no_callers.wait(0.1) and not self._stop.is_set():
                     pass                                # a caller waits for the lock: let it in first
+                self._give_way()                        # a query runs: let it have the CPU
                 if self._stop.is_set():
                     break
                 if frame is not None:
@@ -179,8 +185,9 @@ class MapWorker(MapReads, MapAdmin, TeachWork, IdleWork):
             self.lock.release()
 
     def caller_waits(self) -> bool:
-        """A service call waits for the map lock: a training slice ends after its current step."""
-        return not self._no_callers.is_set()
+        """A service call waits for the map lock, or a query runs: a training slice ends after its
+        current step."""
+        return not self._no_callers.is_set() or self.asking()
 
     def _acquire(self, timeout: float) -> bool:
         """Take the map lock ahead of the worker thread (it starts nothing new while a caller waits);
@@ -225,6 +232,7 @@ class MapWorker(MapReads, MapAdmin, TeachWork, IdleWork):
                 "keyframes_replaced": int(m.totals.get("keyframes_replaced", 0)), "revisits": int(m.totals.get("revisits", 0)),
                 "split": int(m.totals.get("split", 0)), "pruned": int(m.totals.get("pruned", 0)),
                 "supervised_keyframes": self._supervised_count, "perception": self.perception_state,
+                "grounding_models": "loaded" if self._models_loaded else "not loaded",
                 "field_steps": int(getattr(field, "steps", 0)) if field is not None else 0,
                 "field_stop": describe(getattr(field, "stop", None)),
                 "field_waits": self._train_blocked, "last_error": self.last_error,

@@ -93,13 +93,14 @@ class Grounder:
         return self._text
 
     def load_models(self) -> "Grounder":
-        """Load the reasoner's and the text encoder's models now rather than in the first query that
-        needs one (0.1-0.3 s): what a long-running node does at start. `rg ground`, a process per
+        """Load the reasoner's and the text encoder's models and the clustering library now rather than
+        in the first query that needs one (0.1-0.3 s, HDBSCAN's import 0.9 s): what a long-running node does at start. `rg ground`, a process per
         query, skips it: a query whose texts the map stores needs no text model at all."""
         self.reasoner.load()
         load = getattr(inner_encoder(self.text_model()), "load", None)
         if load is not None:
             load()
+        import sklearn.cluster  # noqa: F401 - HDBSCAN's import: 0.9 s, once per process
         return self
 
     # ------------------------------------------------------------------------------ texts (texts.py)

@@ -198,10 +198,11 @@ class SupervisionSet:
 
 
 def supervise_map(mapper, generator: MaskGenerator, embedder: Embedder, progress: bool = False,
-                  embed: bool = True) -> SupervisionSet:
+                  embed: bool = True, between=None) -> SupervisionSet:
     """Compute supervision for every keyframe of `mapper` that has none yet (once per keyframe);
     the map's rendered depth fills sensor depth holes when measuring scales. embed=False: masks and
-    scales only (supervise_map_multiview embeds what it needs)."""
+    scales only (supervise_map_multiview embeds what it needs). `between()` is called before each
+    keyframe (the node's worker waits there while a query runs)."""
     import sys
 
     from tqdm import tqdm
@@ -211,6 +212,8 @@ def supervise_map(mapper, generator: MaskGenerator, embedder: Embedder, progress
     sset = mapper.supervision
     todo = [kf for kf in mapper.keyframes if kf.index not in sset.by_keyframe]
     for kf in tqdm(todo, desc="supervise", unit="kf", disable=not progress, file=sys.stderr):
+        if between is not None:
+            between()
         w, h = kf.size
         with torch.no_grad():
             rendered = mapper.render(kf.K, kf.cam_to_world, w, h).depth.numpy() if len(mapper.gaussians) else None
@@ -224,7 +227,7 @@ def supervise_map(mapper, generator: MaskGenerator, embedder: Embedder, progress
 
 
 def supervise_map_multiview(mapper, generator: MaskGenerator, embedder: Embedder, progress: bool = False,
-                            views_per_object: int = 0) -> tuple[SupervisionSet, dict]:
+                            views_per_object: int = 0, between=None) -> tuple[SupervisionSet, dict]:
     """supervise_map, then one embedding per object across keyframes (multiview.aggregate_multiview):
     the supervision `rg eval` and the node train the field on. -> (set, association statistics).
     views_per_object > 0: masks and scales first; after associating them, an object is embedded in at
@@ -233,9 +236,9 @@ def supervise_map_multiview(mapper, generator: MaskGenerator, embedder: Embedder
     from .multiview import aggregate_multiview, associate
 
     if views_per_object <= 0:
-        sset = supervise_map(mapper, generator, embedder, progress=progress)
+        sset = supervise_map(mapper, generator, embedder, progress=progress, between=between)
         return sset, aggregate_multiview(mapper, sset)
-    sset = supervise_map(mapper, generator, embedder, progress=progress, embed=False)
+    sset = supervise_map(mapper, generator, embedder, progress=progress, embed=False, between=between)
     keys, labels = associate(mapper, sset)
     want: dict[int, np.ndarray] = {k: sup.owned().copy() for k, sup in sset.by_keyframe.items()}
     have = np.zeros(int(labels.max()) + 1 if len(labels) else 0, np.int64)
@@ -253,6 +256,8 @@ def supervise_map_multiview(mapper, generator: MaskGenerator, embedder: Embedder
         if not need.any():
             skipped_kf += int(sup.own is not None and not sup.own.any() and len(sup.scales) > 0)
             continue
+        if between is not None:
+            between()
         rgb = (kfs[k].rgb.numpy() * 255.0).round().clip(0, 255).astype(np.uint8)
         embedded += embed_masks(sup, rgb, embedder, need)
     stats = aggregate_multiview(mapper, sset, keys=(keys, labels))
