@@ -24,7 +24,7 @@ INTRO = ROOT / "benchmarks" / "docs_intro.md"
 # reading order: the pipeline's stages, then end-to-end figures; any other result file follows, by name
 ORDER = ("bench_rasterize", "bench_synth", "bench_mapping", "bench_bag", "bench_field", "bench_perception",
          "bench_bop_naming", "bench_reasoning", "bench_latency", "bench_cache_accuracy", "bench_eval",
-         "bench_confidence", "bench_relations", "bench_llm_parse", "bench_first_answer", "bench_room", "bench_teach", "bench_endurance", "bench_report")
+         "bench_confidence", "bench_relations", "bench_llm_parse", "bench_first_answer", "bench_room", "bench_teach", "bench_endurance", "bench_busy_map", "bench_report")
 UNITS = {"s": "s", "ms": "ms", "db": "dB", "mm": "mm", "pct": "%", "mb": "MB", "gb": "GB"}
 WORDS = {"miou": "mIoU", "iou": "IoU", "psnr": "PSNR", "rss": "RSS", "ycb": "YCB", "top1": "top-1", "top3": "top-3",
          "scene7": "7-name", "tf": "TF"}
