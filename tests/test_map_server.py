@@ -47,6 +47,18 @@ def answered_while(hold: threading.Event, worker: MapWorker, query: str):
     return r
 
 
+def answered_during(w: MapWorker, started: threading.Event, release: threading.Event, query: str, what: str) -> None:
+    """Start `w`; once its held unit of work (`what`) has started, `query` is answered before release."""
+    try:
+        w.start()
+        assert started.wait(HOLD), f"no {what} started"
+        r = answered_while(release, w, query)
+        assert r.success and r.objects, r.message
+    finally:
+        release.set()
+        assert w.stop(timeout=60)
+
+
 def test_query_and_second_save_answered_while_a_save_is_held_open(worker, name, tmp_path):
     from rg_core.map.store import save_map
 
@@ -95,14 +107,7 @@ def test_query_answered_during_a_training_slice(minilm_map_file, name):
         return train(*a, **k)
 
     w.field.train = held_train
-    try:
-        w.start()
-        assert in_slice.wait(HOLD), "no training slice started"
-        r = answered_while(release, w, name)
-        assert r.success and r.objects, r.message
-    finally:
-        release.set()
-        assert w.stop(timeout=30)
+    answered_during(w, in_slice, release, name, "training slice")
 
 
 def test_query_answered_during_a_supervision_pass(minilm_map_file, name, synth_scene):
@@ -124,14 +129,7 @@ def test_query_answered_during_a_supervision_pass(minilm_map_file, name, synth_s
     w.perception_state = "ready"
     k = max(w.mapper.supervision.by_keyframe)
     del w.mapper.supervision.by_keyframe[k]   # a keyframe without supervision: the next idle step supervises it
-    try:
-        w.start()
-        assert in_pass.wait(HOLD), "no supervision pass started"
-        r = answered_while(release, w, name)
-        assert r.success and r.objects, r.message
-    finally:
-        release.set()
-        assert w.stop(timeout=60)
+    answered_during(w, in_pass, release, name, "supervision pass")
 
 
 class _TextAsEmbedder:
