@@ -204,9 +204,14 @@ class MapReads:
         from rg_core.grounding.point import point_answer
 
         self._asked(+1)
+        try:
+            return self._point_answer(point_answer, point, timeout)
+        finally:
+            self._asked(-1)
+
+    def _point_answer(self, point_answer, point, timeout: float) -> GroundingResult:
         snap, g = self._read("point", timeout)
         if snap is None:
-            self._asked(-1)
             return g
         try:
             res = point_answer(g, point)
@@ -217,7 +222,6 @@ class MapReads:
             return GroundingResult(False, f"point answer failed: {type(exc).__name__}: {exc}", query="point")
         finally:
             self.read_lock.release()
-            self._asked(-1)
 
     def scene_graph(self, timeout: float = 30.0) -> tuple[list, list, np.ndarray] | None:
         """(objects, relations, up) of the newest snapshot's scene graph (relations.build_graph,
