@@ -217,11 +217,12 @@ class MapWorker(MapReads, MapAdmin, TeachWork, IdleWork):
         return self._grounder
 
     def stats(self) -> dict:
-        """Counters for the status topic; takes no lock (never waits for mapping). Keyframes and
-        Gaussians are the newest snapshot's (what a query answers from)."""
+        """Counters for the status topic; takes no lock (never waits for mapping). Keyframes,
+        Gaussians and the field's steps and stop are the newest snapshot's (what a query answers
+        from: a status that says the field answers means a query gets an answer)."""
         m = self.mapper
-        field = self.field
         snap = self._snap if self._snap is not None else m   # what queries see
+        field = snap.field if self._snap is not None else self.field
         return {"frames": m.frames_seen, "keyframes": len(snap.keyframes), "gaussians": len(snap.gaussians),
                 "mapped": self.processed, "rejected": self.rejected, "queue": len(self.queue),
                 "queue_size": self.queue.maxsize, "dropped": self.queue.dropped + self.paused_dropped,
@@ -231,7 +232,8 @@ class MapWorker(MapReads, MapAdmin, TeachWork, IdleWork):
                 "evicted": int(m.totals.get("evicted", 0)), "keyframes_dropped": int(m.totals.get("keyframes_dropped", 0)),
                 "keyframes_replaced": int(m.totals.get("keyframes_replaced", 0)), "revisits": int(m.totals.get("revisits", 0)),
                 "split": int(m.totals.get("split", 0)), "pruned": int(m.totals.get("pruned", 0)),
-                "supervised_keyframes": self._supervised_count, "perception": self.perception_state,
+                "supervised_keyframes": (len(snap.supervision.by_keyframe) if self._snap is not None and snap.supervision
+                                         is not None else self._supervised_count), "perception": self.perception_state,
                 "grounding_models": "loaded" if self._models_loaded else "not loaded",
                 "field_steps": int(getattr(field, "steps", 0)) if field is not None else 0,
                 "field_stop": describe(getattr(field, "stop", None)),
