@@ -120,7 +120,7 @@ def test_fetch_export_verify_then_map_and_ground(hub, repos, tmp_path):
     assert worker.perception_state == "ready" and worker._perception[1].name == "onnx_clip"
     res = worker.ground("a red box")
     assert res.query == "a red box" and res.message and "dimension" not in res.message.lower(), res.message
-    assert worker._grounder.encode(["a red box"]).shape == (1, 24)
+    assert worker._reader.encode(["a red box"]).shape == (1, 24)   # the queries' Grounder (reads.py)
     # Without --backend the paper preset reasons with LLaVA, which was not fetched: the error says how to get it.
     r = rg("--config", str(cfg), "ground", str(tmp_path / "m.rgmap"), "something to drink from", "--preset", "paper",
            "--json", env=offline(cache))

@@ -111,4 +111,4 @@ def map_scopes(mapper, field) -> dict[str, tuple[tuple, tuple]]:
         rows = (getattr(f, "state_token", None) or id(f), f.revision, f.steps,
                 f._pca[0] if getattr(f, "_pca", None) is not None else None, id(f.scale_tf))
     return {"map": (tensors, (len(g),) + sup + rows), "supervision": ((), sup),
-            "field": ((f.latents,) if f is not None else (), rows)}
+            "field": ((f,) if f is not None and getattr(f, "state_token", None) is None else (), rows)}

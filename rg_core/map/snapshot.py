@@ -78,7 +78,9 @@ def freeze_field(f, mapper):
     z._spare = {}
     z.sync = lambda: 0                                          # it follows its own snapshot, which never changes
     z._means = f._means
-    z.state_token = ("frozen",) + _field_key(f)               # the cache's name for this state (cache.map_scopes)
+    # The cache's name for this state (cache.map_scopes): what the live field's own entry is made of
+    # (its identity, training revision and steps), so rows appended elsewhere keep a region's clusters.
+    z.state_token = ("frozen", id(f), f.revision, f.steps)
     return z
 
 
