@@ -127,7 +127,7 @@ class GroundingNode(CameraInput, TFInput, InputWatch, Teaching, MapServices, Nod
         else:
             log.warning(f"ground '{short}' failed: {result.message}")
             if graph:
-                self._answers.put((None, None, stamp, True))
+                self._publish_graph_later(stamp)
         return response
 
     def _on_reset(self, request, response):

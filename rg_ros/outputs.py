@@ -75,6 +75,10 @@ class NodeOutputs:
             self._last_result = result
         self._answers.put((result, cloud, stamp, graph))
 
+    def _publish_graph_later(self, stamp) -> None:
+        """The scene graph (if it changed) from the answer thread: an unsuccessful answer built it."""
+        self._answers.put((None, None, stamp, True))
+
     def _answer_thread(self) -> None:
         while True:
             item = self._answers.get()

@@ -19,10 +19,7 @@ import logging
 import os
 import threading
 import traceback
-from pathlib import Path
 from typing import Any, Callable
-
-import numpy as np
 
 from rg_core.config import RGConfig
 from rg_core.field.converge import describe
