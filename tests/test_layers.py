@@ -15,7 +15,7 @@ MAX_LINES = 400
 
 # Lower layers first; a package imports only packages of lower layers.
 LAYERS = [
-    {"rg_core.util", "rg_core.config", "rg_core.geometry"},
+    {"rg_core.util", "rg_core.config", "rg_core.geometry", "rg_core.batch"},
     {"rg_core.render", "rg_core.io"},
     {"rg_core.synth", "rg_core.viz", "rg_core.perception"},
     {"rg_core.models", "rg_core.field"},

@@ -14,6 +14,7 @@ import json
 import logging
 import sys
 
+from ..batch import EngineError
 from ..config import ConfigError, load_config
 from ..perception.base import BackendError
 from ..util import join_prefetches, stdout_to_stderr
@@ -62,10 +63,12 @@ def main(argv: list[str] | None = None) -> int:
         try:
             cfg = apply_overrides(load_config(args.config), args)
             result, code = args.func(args, cfg), 0
-        except (ConfigError, BackendError, ValueError) as exc:  # ValueError includes io.images.SceneError
+        except (ConfigError, BackendError, EngineError, ValueError) as exc:  # ValueError includes io.images.SceneError
             result, code = {"error": str(exc)}, 2
             print(f"rg {args.command}: error: {exc}", file=sys.stderr)
-        if args.json:
+        if code == 0 and hasattr(result, "write_to"):   # many scenes: streamed from the files it wrote
+            result.write_to(real_stdout, args.json)
+        elif args.json:
             real_stdout.write(json.dumps(result) + "\n")
         elif code == 0:
             _print_human(result, real_stdout, getattr(args, "human", None))

@@ -1,15 +1,30 @@
-"""`rg eval`: a scene's queries on its test views (mIoU, localization, box IoU, confidence, timings)."""
+"""`rg eval`: a scene's queries on its test views (mIoU, localization, box IoU, confidence, timings);
+several scenes (paths, a folder of scenes, a list file) run as one task each, in this process or on
+Ray, with their aggregate (many.py)."""
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
 
 from .config_args import add_alias, add_sections, was_given
+from .many import add_engine_args
 from .options import add_common, positive
 
 
 def cmd_eval(args, cfg) -> dict:
+    from .many import eval_many, is_many
+
+    if is_many(args):
+        return eval_many(args, cfg)
+    one = argparse.Namespace(**vars(args))
+    one.scene = args.scene[0]
+    return eval_scene(one, cfg)
+
+
+def eval_scene(args, cfg) -> dict:
+    """One scene (args.scene a path), as `rg eval SCENE` has always run it."""
     from ..eval.grounding import evaluate_queries
     from ..grounding.build import build_grounder
     from ..io.captures import read_scene
@@ -44,7 +59,8 @@ def cmd_eval(args, cfg) -> dict:
     if as_is:
         report["field"] = {"trained": 0, "steps": grounder.field.steps, "reason": "--map: scored as it is"}
     report["seconds_build"] = round(time.perf_counter() - t, 3)
-    report["eval"] = evaluate_queries(grounder, scene, args.implicit, progress=not args.quiet, ablation=args.ablation)
+    report["eval"] = evaluate_queries(grounder, scene, args.implicit, progress=not args.quiet, ablation=args.ablation,
+                                      relational=getattr(args, "relational", 0))
     if scene.kind == "bop":  # how much of each amodal mask no training view saw (one viewpoint hides parts)
         from ..eval.amodal_coverage import amodal_coverage
 
@@ -61,8 +77,11 @@ def cmd_eval(args, cfg) -> dict:
 
 
 def add_eval(sub) -> None:
-    p = sub.add_parser("eval", help="run queries.json on the test views: mIoU, localization, box IoU, timings")
-    p.add_argument("scene", help="ReasoningGD or BOP scene folder (BOP: scene_camera.json + scene_gt.json)")
+    p = sub.add_parser("eval", help="run queries.json on the test views: mIoU, localization, box IoU, timings; "
+                                    "many scenes: one task each, locally or on Ray, and their aggregate")
+    p.add_argument("scene", nargs="+", help="ReasoningGD or BOP scene folder (BOP: scene_camera.json + scene_gt.json); "
+                                            "several, a folder of scene folders or a text file listing them "
+                                            "(one path a line): one task per scene and the aggregate")
     p.add_argument("--map", help="map file (default: build one from the scene); a map with a trained field is "
                                   "scored as it is, unless --field-seconds / --field-steps asks for more training")
     p.add_argument("--queries", help="queries.json-format file [{object_id, explicit, implicit: [...]}] "
@@ -74,10 +93,16 @@ def add_eval(sub) -> None:
     add_alias(budget, "--field-steps", keys="field.steps", type=positive, metavar="N",
               help="train the field exactly N steps instead (default: config field.steps; 0 there = seconds)")
     p.add_argument("--implicit", type=int, default=1, help="implicit queries per object (default 1)")
+    p.add_argument("--relational", type=int, default=0, metavar="N",
+                   help="also N relational queries per scene from its ground truth ('the object closest to the "
+                        "lemon', left of, biggest, ...; kind relational), asked from the first test view (default 0)")
     p.add_argument("--ablation", action="store_true", help="relevancy only / + reasoning / + grouping table")
     add_alias(p, "--preset", keys="models.preset",
               help="models of the default supervision: offline, paper, paper_cpu (default: config)")
-    p.add_argument("--out", help="folder for PNGs: risk against coverage and reliability of the confidence")
+    p.add_argument("--out", help="folder for PNGs: risk against coverage and reliability of the confidence; many "
+                                 "scenes: aggregate.json, table.txt and scenes.png (default: the --results folder)")
+    add_engine_args(p, "local Ray workers for --ray without an address (default: the cores); each task's torch "
+                       "threads are cores / workers")
     add_common(p)
     add_sections(p, ("map", "field", "ground", "reason", "models"))
     p.set_defaults(func=cmd_eval)

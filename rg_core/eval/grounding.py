@@ -1,6 +1,7 @@
 """Grounding quality on a scene's test views (`rg eval`): visible and amodal mask mIoU, LERF
 localization accuracy, 3D box IoU and seconds per query and stage, for explicit and implicit
-queries; and the paper's ablation (relevancy only / + reasoning / + hierarchical grouping)."""
+queries (and relational ones generated from the ground truth, when asked); and the paper's ablation
+(relevancy only / + reasoning / + hierarchical grouping)."""
 from __future__ import annotations
 
 import sys
@@ -8,6 +9,7 @@ import time
 
 import numpy as np
 
+from ..geometry.conventions import project
 from ..grounding.boxes import box_iou_aabb
 from ..io.scene import depth_or_none
 
@@ -23,13 +25,18 @@ def _box2d_contains(mask: np.ndarray, x: int, y: int) -> bool:
 
 
 def evaluate_queries(grounder, scene, implicit_per_object: int = 1, min_visible_px: int = 20,
-                     views: list | None = None, progress: bool = False, ablation: bool = False) -> dict:
+                     views: list | None = None, progress: bool = False, ablation: bool = False,
+                     relational: int = 0) -> dict:
     """Every explicit query and the first `implicit_per_object` implicit ones of queries.json, on
     every test view where the object is visible (>= min_visible_px pixels). Masks, boxes and
     localization are those of the answer's groups, an abstained answer's best guess too (the
     figures stay comparable across thresholds); abstention shows in success_rate and "confidence".
     A query asked of several objects (two objects named "remote control") is asked once and scored
-    against the one of them the answer's box overlaps most: either is a right answer to the name."""
+    against the one of them the answer's box overlaps most: either is a right answer to the name.
+    `relational` > 0: that many relational queries from the ground truth (eval/relational.py), asked
+    from the first test camera and scored against the object they expect (kind "relational"; its
+    localization: the answer's box centre falls inside the object's 2D box, since the answer comes
+    from the scene graph, not from a relevancy peak)."""
     from tqdm import tqdm
 
     by_id = {o.id: o for o in scene.objects}
@@ -42,10 +49,17 @@ def evaluate_queries(grounder, scene, implicit_per_object: int = 1, min_visible_
             jobs.setdefault(("explicit", q.explicit), []).append(q.object_id)
             for t in q.implicit[:implicit_per_object]:
                 jobs.setdefault(("implicit", t), []).append(q.object_id)
+    rel_cam = None
+    if relational > 0:
+        from .relational import scored_queries
+
+        rel_cam = scene.test[0].cam_to_world if scene.test else None
+        for q in scored_queries(scene, relational):
+            jobs.setdefault(("relational", q["text"]), []).extend(o.id for o in scene.objects if o.name == q["expect"])
     rows, abl = [], []
     for (kind, text), oids in tqdm(list(jobs.items()), desc="eval", unit="query", disable=not progress, file=sys.stderr):
         t0 = time.perf_counter()
-        res = grounder.ground(text, mode=kind)
+        res = (grounder.ground(text, cam_to_world=rel_cam) if kind == "relational" else grounder.ground(text, mode=kind))
         t_query = time.perf_counter() - t0
         o, box = by_id[oids[0]], 0.0
         if res.objects:   # an abstained answer is scored by its best guess: the figures stay comparable
@@ -64,7 +78,11 @@ def evaluate_queries(grounder, scene, implicit_per_object: int = 1, min_visible_
             amodal, visible, visible_d = grounder.mask_layers(res, f.intrinsics.K, f.cam_to_world, W, H, depth, rgb)
             t_mask = time.perf_counter() - t1
             loc = False
-            if res.objects:
+            if res.objects and kind == "relational":
+                c = (np.asarray(res.objects[0].aabb_min) + np.asarray(res.objects[0].aabb_max)) / 2
+                uv, z = project(c[None], f.intrinsics.K, f.cam_to_world)
+                loc = bool(z[0] > 0) and _box2d_contains(gt_vis, int(round(uv[0, 0])), int(round(uv[0, 1])))
+            elif res.objects:
                 rel, _ = grounder.relevancy_view(res.target, res.scale, f.intrinsics.K, f.cam_to_world, W, H)
                 y, x = divmod(int(rel.reshape(-1).argmax()), W)
                 loc = _box2d_contains(gt_vis, x, y)
@@ -75,7 +93,7 @@ def evaluate_queries(grounder, scene, implicit_per_object: int = 1, min_visible_
                          "iou_visible_depth": None if visible_d is None else iou(visible_d, gt_vis),
                          "iou_amodal": None if gt_amodal is None else iou(amodal, gt_amodal), "localized": loc, "box_iou": box,
                          "seconds_query": t_query, "seconds_masks": t_mask, "timings": res.timings})
-            if ablation and gt_amodal is not None:
+            if ablation and gt_amodal is not None and kind != "relational":
                 abl.append(_ablation_row(grounder, kind, text, o, f, gt_vis, gt_amodal, amodal))
     out = summarise(rows)
     if ablation:
@@ -111,6 +129,14 @@ def _summarise_ablation(rows: list[dict]) -> dict:
     return out
 
 
+KINDS = ("explicit", "implicit", "relational")
+
+
+def kinds_of(rows: list[dict]) -> tuple[str, ...]:
+    """explicit and implicit always (as rg eval has always reported them), relational when asked."""
+    return tuple(k for k in KINDS if k != "relational" or any(r["kind"] == k for r in rows))
+
+
 def summarise(rows: list[dict]) -> dict:
     def block(rs):
         if not rs:
@@ -122,7 +148,7 @@ def summarise(rows: list[dict]) -> dict:
                 "localization": round(100 * m("localized"), 2), "target_accuracy": round(100 * m("target_ok"), 2),
                 "success_rate": round(100 * m("success"), 2)}
 
-    out = {k: block([r for r in rows if r["kind"] == k]) for k in ("explicit", "implicit")}
+    out = {k: block([r for r in rows if r["kind"] == k]) for k in kinds_of(rows)}
     out["all"] = block(rows)
     out["queries_asked_of_several"] = len({r["query"] for r in rows if r.get("asked_of", 1) > 1})
     per_obj: dict[str, float] = {}
@@ -143,7 +169,7 @@ def summarise(rows: list[dict]) -> dict:
     out["per_object"] = {}
     for k, rs in per_obj_masks.items():
         out["per_object"][k] = obj_block(rs)
-        for kind in ("explicit", "implicit"):
+        for kind in kinds_of(rows):
             sub = [r for r in rs if r["kind"] == kind]
             if sub:
                 out["per_object"][k][kind] = obj_block(sub)
@@ -247,7 +273,7 @@ def calibration(queries: list[dict]) -> dict:
                 "right_returned_share": round(float(ok[y].mean()), 4) if y.any() else float("nan"),
                 "abstained": int((~ok).sum())}
 
-    out = {k: block([q for q in queries if q["kind"] == k]) for k in ("explicit", "implicit")}
+    out = {k: block([q for q in queries if q["kind"] == k]) for k in kinds_of(queries)}
     out["all"] = block(queries)
     out["risk_coverage"] = risk_coverage(np.array([q["confidence"] for q in queries]),
                                          np.array([q["right"] for q in queries], bool)) if queries else {}

@@ -106,26 +106,48 @@ def read_capture(root: str | Path, test_every: int = 8, trajectory: str | Path |
     return Scene(root=root, train=train, test=test, kind="capture")
 
 
+def scene_kind(root: str | Path) -> str | None:
+    """Which reader a path is for: "bag", "bop", "reasoninggd", "ycb", "capture", or None when it is
+    no scene (what read_scene dispatches on; `rg eval DIR` tells a scene from a folder of scenes by it)."""
+    from .bop import is_bop
+    from .rosbag import is_bag
+    from .ycb import is_ycb
+
+    root = Path(root)
+    if is_bag(root):
+        return "bag"
+    if is_bop(root):
+        return "bop"
+    if (root / "transforms_train.json").is_file():
+        return "reasoninggd"
+    if is_ycb(root):
+        return "ycb"
+    if root.is_dir() and any(_FRAME_RE.match(p.name) for p in root.iterdir()):
+        return "capture"
+    return None
+
+
 def read_scene(root: str | Path, test_every: int = 8, bag_options=None, bop_options=None) -> Scene:
     """Read any supported scene: ReasoningGD layout, a real capture folder, a BOP scene folder
     (scene_camera.json + scene_gt.json; `bop_options` a bop.BopOptions, else every `test_every`-th
     image a test view), a YCB-Video sequence folder (classes.txt + NNNNNN-meta.mat) or a ROS 2 bag (.mcap, .db3 or a rosbag2 folder; `bag_options` is a
     rosbag.BagOptions, default options when None)."""
-    from .bop import BopOptions, is_bop, read_bop
-    from .rosbag import is_bag, read_bag
+    from .bop import BopOptions, read_bop
+    from .rosbag import read_bag
     from .scene import read_reasoninggd
-    from .ycb import is_ycb, read_ycb_scene
+    from .ycb import read_ycb_scene
 
     root = Path(root)
-    if is_bag(root):
+    kind = scene_kind(root)
+    if kind == "bag":
         return read_bag(root, bag_options, test_every=test_every)
-    if is_bop(root):
+    if kind == "bop":
         return read_bop(root, bop_options or BopOptions(test_every=test_every))
-    if (root / "transforms_train.json").is_file():
+    if kind == "reasoninggd":
         return read_reasoninggd(root)
-    if is_ycb(root):
+    if kind == "ycb":
         return read_ycb_scene(root, test_every=test_every)
-    if root.is_dir() and any(_FRAME_RE.match(p.name) for p in root.iterdir()):
+    if kind == "capture":
         return read_capture(root, test_every=test_every)
     raise SceneError(
         f"{root}: not a scene folder or bag (expected transforms_train.json, frame-XXXXXX.color.png files, "
