@@ -10,6 +10,7 @@ executor): run.py.
 """
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from pathlib import Path
@@ -42,6 +43,8 @@ class GroundingNode(CameraInput, TFInput, InputWatch, Teaching, MapServices, Nod
             import torch
 
             torch.set_num_threads(p.torch_threads)
+        if p.gil_switch_interval > 0:   # process-wide: see the parameter's description
+            sys.setswitchinterval(p.gil_switch_interval)
         self.worker = make_worker(p, self.get_logger())
         self._state_lock = threading.Lock()
         self._camera: tuple | None = None   # (K, w, h, cam_to_world, frame_id, stamp, depth, rgb) of the latest frame

@@ -130,6 +130,9 @@ class NodeParams:
     train_seconds_max: float = _from(WorkerConfig, "train_seconds_max")
     refine_iters: int = _from(WorkerConfig, "refine_iters")
     torch_threads: int = _p(0, "torch intra-op threads (0 = torch's default)", 0, 1024)
+    gil_switch_interval: float = _p(0.0005, "s a thread holding Python's GIL keeps it while another waits "
+                                    "(sys.setswitchinterval; 0 = Python's 0.005): short, so a query's torch "
+                                    "calls get the GIL back quickly beside mapping and the executor", 0.0, 0.1)
     max_results: int = _p(1, "objects returned when a request says max_results = 0", 1, 1000)
     max_query_chars: int = _from(GroundConfig, "max_query_chars")
     min_confidence: float = _from(GroundConfig, "min_confidence")

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import random
+import sys
 import threading
 from pathlib import Path
 
@@ -135,7 +136,8 @@ def watched():
     remap = {"rgb/image": f"{prefix}/color/image_raw", "depth/image": f"{prefix}/depth/image_raw",
              "rgb/camera_info": f"{prefix}/color/camera_info", "ground": f"{prefix}/ground"}   # no other node's
     params = dict(features=False, input_timeout=1.0, status_period=3600.0, mask_rate=0.0, map_cloud_period=0.0,
-                  scene_graph_period=0.0, torch_threads=1)
+                  scene_graph_period=0.0, torch_threads=1, gil_switch_interval=0.002)
+    switch = sys.getswitchinterval()   # process-wide: given back after the module
     args = ["--ros-args", *[a for k, v in remap.items() for a in ("-r", f"{k}:={v}")]]
     node = GroundingNode(context=ctx, cli_args=args,
                          parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
@@ -158,6 +160,7 @@ def watched():
         probe.destroy_node()
         ctx.try_shutdown()
         thread.join(timeout=5)
+        sys.setswitchinterval(switch)
 
 
 def wait_for(cond, timeout: float, what: str):
@@ -182,6 +185,12 @@ def test_ground_names_the_compressed_colour_topic(watched):
     assert (f"colour 0 on {watched['prefix']}/color/image_raw (but {compressed} is published "
             f"(sensor_msgs/msg/CompressedImage): set color_transport: compressed)") in res.message, res.message
     assert f"depth 0 on {watched['prefix']}/depth/image_raw (no publisher)" in res.message, res.message
+
+
+def test_node_sets_the_gil_switch_interval(watched):
+    """gil_switch_interval is applied to the process (a query's torch calls get the GIL back
+    within it beside the mapping thread and the executor; bench_endurance --busy measures that)."""
+    assert sys.getswitchinterval() == pytest.approx(0.002)
 
 
 def test_warns_when_no_frame_comes(watched):
