@@ -13,6 +13,7 @@ from pathlib import Path
 
 from ..batch import ResultsDir, Task, engine_info, run_tasks
 from ..batch.engines import cores
+from ..util import peak_rss_mb
 from .options import positive
 
 EVAL_TASK = "rg_core.cli.many:eval_task"
@@ -88,6 +89,7 @@ def eval_many(args, cfg, task: str = EVAL_TASK) -> "ManyResult":
     engine, workers, address = _engine(args, args.workers)
     if engine == "local" and args.workers:
         raise ValueError("--workers needs --ray (without it the scenes run one after another in this process)")
+    info = engine_info(engine)   # first: without Ray, say how to install it before anything else
     paths = expand(args.scene)
     scene_names = names(paths)
     base = {k: v for k, v in vars(args).items() if k not in ("func", "human")}
@@ -97,14 +99,14 @@ def eval_many(args, cfg, task: str = EVAL_TASK) -> "ManyResult":
     tasks = [Task(n, {"args": {**base, "scene": str(p)}, "config": conf}, settings) for n, p in zip(scene_names, paths)]
     rd, keep = _results_dir(args)
     todo, skipped = rd.pending(tasks, args.retry_failed)
-    info = engine_info(engine)
 
     def on_record(t, rec):
         rd.write({**rec, "path": t.payload["args"]["scene"], "engine": info, "settings": t.settings})
 
     run_tasks(task, todo, on_record, engine, workers, address, progress=not args.quiet)
     run = {"tasks": len(todo), "skipped_ok": skipped["ok"], "skipped_failed": skipped["failed"],
-           "workers": workers if engine == "ray" and address is None else None, "address": address}
+           "workers": workers if engine == "ray" and address is None else None, "address": address,
+           "driver_peak_rss_mb": round(peak_rss_mb(), 1)}   # this process: flat in the number of scenes
     out_dir = Path(args.out) if args.out else rd.root
     return write_aggregate(rd, scene_names, info, run, out_dir, keep)
 
@@ -200,6 +202,7 @@ def synth_many(args, cfg, objects_dir: Path | None, task: str = SYNTH_TASK) -> d
     engine, n_workers, address = _engine(args, workers)
     if args.ray is not None and address is not None and was_given(args, "synth.workers"):
         raise ValueError(f"--workers is for local Ray workers; the cluster at --ray {args.ray} has its own CPUs")
+    info = engine_info(engine)
     conf = config_to_dict(cfg.synth)
     if engine == "ray":
         conf["workers"] = 1
@@ -209,7 +212,6 @@ def synth_many(args, cfg, objects_dir: Path | None, task: str = SYNTH_TASK) -> d
                                      "objects_dir": settings["objects_dir"]}, settings) for s in args.seeds]
     rd = ResultsDir(args.results or out / ".rg_synth")
     todo, skipped = rd.pending(tasks, args.retry_failed)
-    info = engine_info(engine)
     counts, failed = {"ok": 0, "failed": 0}, []
 
     def on_record(t, rec):

@@ -7,6 +7,20 @@ from pathlib import Path
 import numpy as np
 
 
+def _save(fig, path, title: str = "") -> str:
+    """Title, lay out, write (creating the folder) and close a figure; returns the path."""
+    import matplotlib.pyplot as plt
+
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return str(path)
+
+
 def line_plot(path: Path, panels: list[dict], title: str = "") -> str:
     """panels: [{"x": label, "y": label, "series": [(name, xs, ys)], "mark": [(x, y, text)],
     "logx": bool, "logy": bool}] side by side. Returns the path."""
@@ -34,14 +48,7 @@ def line_plot(path: Path, panels: list[dict], title: str = "") -> str:
         ax.grid(alpha=0.3)
         if len(p["series"]) > 1:
             ax.legend(fontsize=7)
-    if title:
-        fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return str(path)
+    return _save(fig, path, title)
 
 
 def calibration_png(queries: list[dict], path, threshold: float | None = None, title: str = "") -> str:
@@ -93,11 +100,4 @@ def scenes_png(per_scene: dict[str, list], seconds: list, path, title: str = "")
     bx.set_xlabel("seconds per scene")
     bx.set_ylabel("scenes")
     bx.grid(alpha=0.3)
-    if title:
-        fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return str(path)
+    return _save(fig, path, title)
