@@ -44,7 +44,9 @@ def rg(*args) -> tuple[dict, float]:
 
 
 def figures(agg: dict) -> dict:
-    return {s["scene"]: {k: v for k, v in (s["eval"] or {}).items() if k != "seconds"} for s in agg["scenes"]}
+    """scene -> its figures but seconds, as sorted JSON (NaN equals NaN)."""
+    return {s["scene"]: json.dumps({k: v for k, v in (s["eval"] or {}).items() if k != "seconds"}, sort_keys=True)
+            for s in agg["scenes"]}
 
 
 def same_bytes(a: Path, b: Path) -> bool:

@@ -6,7 +6,7 @@ import os
 import signal
 from pathlib import Path
 
-from rg_core.cli.many import eval_task
+from rg_core.cli.evaluation import eval_task
 
 MARKER = "KILL_MY_WORKER"
 

@@ -7,6 +7,8 @@ machine's test run. Teardown ends exactly the processes of this cluster (found b
 not every Ray process of the machine as `ray stop` would."""
 import json
 import os
+import secrets
+import shutil
 import signal
 import socket
 import subprocess
@@ -17,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from test_many_scenes import EVAL, SYNTH, run_rg, scene_figures
+from test_many_scenes import EVAL, SYNTH, canonical, run_rg, scene_figures
 
 ray = pytest.importorskip("ray", reason="Ray is installed by scripts/test.sh (requirements-ray.txt)")
 TESTS = Path(__file__).resolve().parent
@@ -31,21 +33,28 @@ def free_port() -> int:
 
 
 def processes_under(root: Path) -> list[int]:
-    """Pids of the processes whose command line names `root` (this cluster's temp dir)."""
-    out = []
+    """Pids of the processes whose command line names `root` (this cluster's temp dir: GCS, raylets,
+    agents, monitors) and all their descendants (the workers, whose title Ray rewrites to ray::...)."""
+    named, parent = set(), {}
     for d in Path("/proc").iterdir():
         if d.name.isdigit() and int(d.name) != os.getpid():
             try:
                 if str(root) in (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace"):
-                    out.append(int(d.name))
-            except OSError:
+                    named.add(int(d.name))
+                parent[int(d.name)] = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
                 pass
-    return out
+    out, grew = set(named), True
+    while grew:
+        more = {p for p, pp in parent.items() if pp in out and p not in out}
+        out |= more
+        grew = bool(more)
+    return sorted(out)
 
 
 def end_processes(root: Path) -> list[int]:
-    """SIGTERM, then SIGKILL after 10 s, every process of the cluster under `root`; the pids left."""
-    for sig, wait in ((signal.SIGTERM, 10.0), (signal.SIGKILL, 5.0)):
+    """SIGTERM, then SIGKILL after up to 15 s, every process of the cluster under `root`; the pids left."""
+    for sig, wait in ((signal.SIGTERM, 15.0), (signal.SIGKILL, 5.0)):
         for pid in processes_under(root):
             try:
                 os.kill(pid, sig)
@@ -57,20 +66,27 @@ def end_processes(root: Path) -> list[int]:
     return processes_under(root)
 
 
+def ray_env(root: Path) -> dict:
+    """The environment of every process of a test cluster: its temp dir, no usage stats, and token
+    authentication with a token of its own (Ray's default would write one to ~/.ray)."""
+    return dict(os.environ, RAY_TMPDIR=str(root), RAY_USAGE_STATS_ENABLED="0", RAY_AUTH_MODE="token",
+                RAY_AUTH_TOKEN=secrets.token_hex(32),
+                PYTHONPATH=os.pathsep.join(p for p in (str(TESTS), os.environ.get("PYTHONPATH", "")) if p))
+
+
 @pytest.fixture(scope="module")
 def cluster():
     """(address, env, node ids) of a two-node Ray cluster on 127.0.0.1; torn down whatever happens."""
     # a short temp dir under /tmp: Ray's socket paths must stay under 108 characters
     root = Path(tempfile.mkdtemp(prefix="rgray", dir="/tmp"))
     port = free_port()
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep),
-               RAY_USAGE_STATS_ENABLED="0", RAY_TMPDIR=str(root))
+    env = ray_env(root)
     common = ["--num-cpus", "1", "--node-ip-address", "127.0.0.1", "--disable-usage-stats",
               "--object-store-memory", str(80 * 1024 * 1024)]
     try:
         for cmd in ([RAY, "start", "--head", "--port", str(port), "--include-dashboard", "false",
                      "--temp-dir", str(root / "head"), *common],
-                    [RAY, "start", "--address", f"127.0.0.1:{port}", "--temp-dir", str(root / "head"), *common]):
+                    [RAY, "start", "--address", f"127.0.0.1:{port}", "--temp-dir", str(root / "node2"), *common]):
             r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=180)
             assert r.returncode == 0, (cmd, r.stdout[-3000:], r.stderr[-3000:])
         address = f"127.0.0.1:{port}"
@@ -83,8 +99,6 @@ def cluster():
         yield address, env, nodes
     finally:
         left = end_processes(root)
-        import shutil
-
         shutil.rmtree(root, ignore_errors=True)
         assert not left, f"Ray processes left behind: {left}"
 
@@ -117,17 +131,19 @@ def test_cluster_runs_scenes_on_both_nodes_with_the_sequential_figures(cluster, 
     assert all(s["status"] == "ok" for s in seq["scenes"] + on_ray["scenes"]), on_ray["scenes"]
     assert {s["node"] for s in on_ray["scenes"]} == set(nodes)
     assert scene_figures(on_ray) == scene_figures(seq)   # exactly: seeded, and threads do not change a figure
-    assert {k: v for k, v in on_ray["aggregate"].items() if k != "seconds"} == \
-        {k: v for k, v in seq["aggregate"].items() if k != "seconds"}
+    assert canonical({k: v for k, v in on_ray["aggregate"].items() if k != "seconds"}) == \
+        canonical({k: v for k, v in seq["aggregate"].items() if k != "seconds"})
 
 
-def test_a_killed_worker_loses_only_its_scene_and_a_rerun_completes_it(cluster, ray_scenes, tmp_path):
+def test_a_killed_worker_loses_only_its_scene_and_a_rerun_completes_it(cluster, ray_scenes, tmp_path, monkeypatch):
     from rg_core.cli import build_parser
     from rg_core.cli.config_args import apply_overrides
     from rg_core.cli.many import eval_many
     from rg_core.config import RGConfig
 
     address, env, nodes = cluster
+    for k in ("RAY_AUTH_MODE", "RAY_AUTH_TOKEN", "RAY_USAGE_STATS_ENABLED"):
+        monkeypatch.setenv(k, env[k])   # this process is the driver
     victim = ray_scenes / "scene_00012"
     (victim / "KILL_MY_WORKER").write_text("")
     res = tmp_path / "res"
@@ -155,7 +171,7 @@ def test_a_killed_worker_loses_only_its_scene_and_a_rerun_completes_it(cluster, 
 
 def test_local_workers(ray_scenes, tmp_path):
     """--ray without an address: Ray started in the command on --workers CPUs, stopped after it."""
-    env = dict(os.environ, RAY_TMPDIR=tempfile.mkdtemp(prefix="rgrl", dir="/tmp"), RAY_USAGE_STATS_ENABLED="0")
+    env = ray_env(Path(tempfile.mkdtemp(prefix="rgrl", dir="/tmp")))
     try:
         r = run_rg("eval", ray_scenes / "scene_00011", ray_scenes / "scene_00013", "--ray", "--workers", "2",
                    *EVAL, "--json", "--quiet", env=env)
@@ -164,4 +180,7 @@ def test_local_workers(ray_scenes, tmp_path):
         assert agg["engine"]["name"] == "ray" and agg["run"]["workers"] == 2
         assert [s["status"] for s in agg["scenes"]] == ["ok", "ok"]
     finally:
-        assert not end_processes(Path(env["RAY_TMPDIR"]))   # the command's own ray.shutdown() left none
+        left = processes_under(Path(env["RAY_TMPDIR"]))   # the command's own ray.shutdown() ended them
+        end_processes(Path(env["RAY_TMPDIR"]))
+        shutil.rmtree(env["RAY_TMPDIR"], ignore_errors=True)
+    assert not left, left

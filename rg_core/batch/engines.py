@@ -134,8 +134,9 @@ def _run_ray(fn_ref: str, tasks: list, on_record, workers: int, address: str | N
             else:
                 ray.init(address=address, **kw)
         except ConnectionError as exc:
-            raise EngineError(f"--ray {address}: no Ray cluster there ({exc}); start one with `ray start --head` "
-                              "or give --ray without an address for local workers") from exc
+            raise EngineError(f"--ray {address}: cannot join a Ray cluster there ({exc}); start one with "
+                              "`ray start --head` (with the cluster's RAY_AUTH_TOKEN where it uses tokens), or give "
+                              "--ray without an address for local workers") from exc
     try:
         # SPREAD: a cluster's nodes share the scenes, rather than the driver's node taking them first
         remote = ray.remote(num_cpus=1, max_retries=0, scheduling_strategy="SPREAD")(_ray_execute)

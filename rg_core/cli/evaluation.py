@@ -76,6 +76,13 @@ def eval_scene(args, cfg) -> dict:
     return report
 
 
+def eval_task(payload: dict) -> dict:
+    """One scene's `rg eval` in a task (any process): the single-scene command, quiet."""
+    from ..config import config_from_dict
+
+    return eval_scene(argparse.Namespace(**payload["args"]), config_from_dict(payload["config"]))
+
+
 def add_eval(sub) -> None:
     p = sub.add_parser("eval", help="run queries.json on the test views: mIoU, localization, box IoU, timings; "
                                     "many scenes: one task each, locally or on Ray, and their aggregate")

@@ -16,8 +16,9 @@ from ..batch.engines import cores
 from ..util import peak_rss_mb
 from .options import positive
 
-EVAL_TASK = "rg_core.cli.many:eval_task"
-SYNTH_TASK = "rg_core.cli.many:synth_task"
+# The task functions, named (not imported: those modules import this one) for the engine to import
+EVAL_TASK = "rg_core.cli.evaluation:eval_task"
+SYNTH_TASK = "rg_core.cli.synthesis:synth_task"
 LOCAL = "local"   # --ray without an address: Ray started here with --workers CPUs
 # argparse fields that say how to run, not what a scene's figures are (left out of the settings)
 _RUN_ONLY = {"func", "human", "json", "quiet", "ray", "workers", "results", "retry_failed", "out", "scene", "config",
@@ -64,14 +65,6 @@ def is_many(args) -> bool:
 
     return (len(args.scene) > 1 or args.ray is not None or bool(args.results) or args.retry_failed
             or args.workers is not None or is_collection(args.scene[0]))
-
-
-def eval_task(payload: dict) -> dict:
-    """One scene's `rg eval` in a task (any process): the single-scene command, quiet."""
-    from ..config import config_from_dict
-    from .evaluation import eval_scene
-
-    return eval_scene(argparse.Namespace(**payload["args"]), config_from_dict(payload["config"]))
 
 
 def eval_many(args, cfg, task: str = EVAL_TASK) -> "ManyResult":
@@ -179,15 +172,6 @@ def seeds(text: str) -> list[int]:
         raise argparse.ArgumentTypeError(f"--seeds wants A-B (inclusive), A,B,C or a mix such as 0-9,20; "
                                          f"got {text!r}") from None
     return list(dict.fromkeys(out))
-
-
-def synth_task(payload: dict) -> dict:
-    """One synthetic scene in a task (any process)."""
-    from ..config import SynthConfig, config_from_dict
-    from ..synth.generator import generate_scene
-
-    objects_dir = Path(payload["objects_dir"]) if payload["objects_dir"] else None
-    return generate_scene(payload["out"], config_from_dict(payload["config"], SynthConfig), objects_dir, progress=False)
 
 
 def synth_many(args, cfg, objects_dir: Path | None, task: str = SYNTH_TASK) -> dict:

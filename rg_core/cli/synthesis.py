@@ -31,6 +31,15 @@ def cmd_synth(args, cfg) -> dict:
     return summary
 
 
+def synth_task(payload: dict) -> dict:
+    """One synthetic scene in a task (any process)."""
+    from ..config import SynthConfig, config_from_dict
+    from ..synth.generator import generate_scene
+
+    objects_dir = Path(payload["objects_dir"]) if payload["objects_dir"] else None
+    return generate_scene(payload["out"], config_from_dict(payload["config"], SynthConfig), objects_dir, progress=False)
+
+
 def add_synth(sub) -> None:
     p = sub.add_parser("synth", help="generate a synthetic table-top or room scene (ReasoningGD layout)")
     p.add_argument("out", help="output scene folder (with --seeds: the folder of the scenes, OUT/scene_<seed>)")

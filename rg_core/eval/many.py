@@ -29,10 +29,15 @@ def _scene_folders(p: Path) -> list[Path]:
     return sorted(c for c in p.iterdir() if c.is_dir() and scene_kind(c) is not None)
 
 
+LIST_SUFFIXES = (".txt", ".lst", ".list")
+
+
 def is_collection(p: str | Path) -> bool:
-    """Whether one path names many scenes: a text file listing them, or a folder of scene folders."""
+    """Whether one path names many scenes: a text file listing them (or a missing one: expand says
+    so), or a folder of scene folders."""
     p = Path(p)
-    return _is_list_file(p) or (p.is_dir() and scene_kind(p) is None and bool(_scene_folders(p)))
+    return (_is_list_file(p) or (not p.exists() and p.suffix in LIST_SUFFIXES)
+            or (p.is_dir() and scene_kind(p) is None and bool(_scene_folders(p))))
 
 
 def expand(paths: list[str]) -> list[Path]:
@@ -50,7 +55,7 @@ def expand(paths: list[str]) -> list[Path]:
                     out.append(q if q.is_absolute() else p.parent / q)
         elif p.is_dir() and scene_kind(p) is None and _scene_folders(p):
             out += _scene_folders(p)
-        elif not p.exists() and p.suffix in (".txt", ".lst", ".list"):
+        elif not p.exists() and p.suffix in LIST_SUFFIXES:
             raise SceneError(f"{p}: scene list file does not exist (expected a text file with one scene path a line)")
         else:
             out.append(p)
