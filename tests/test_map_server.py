@@ -184,18 +184,18 @@ def test_pause_counts_frames_maps_nothing_and_still_answers(minilm_map_file, nam
     w = make_worker(minilm_map_file)
     try:
         w.start()
-        g0, mapped0 = len(w.mapper.gaussians), w.processed
+        g0, mapped0, rejected0 = len(w.mapper.gaussians), w.processed, w.rejected
         assert w.pause() == 0 and w.paused
         for i in range(5):
             assert w.submit(make_frame(1000.0 + i, x=0.3 * i)) is False
         st = w.stats()
         assert st["dropped_paused"] == 5 and st["paused"] and st["received"] - st["dropped"] == w.queue.put_count - w.queue.dropped
-        assert len(w.mapper.gaussians) == g0 and w.processed == mapped0
+        assert len(w.mapper.gaussians) == g0 and w.processed == mapped0 and w.rejected == rejected0
         r = w.ground(name, timeout=HOLD)
         assert r.success, r.message
         w.resume()
         w.submit(make_frame(2000.0))
-        assert wait_for(lambda: w.processed == mapped0 + 1 + w.rejected, HOLD)
+        assert wait_for(lambda: w.processed + w.rejected == mapped0 + rejected0 + 1, HOLD)   # taken after resume
         assert not w.stats()["paused"]
     finally:
         assert w.stop(timeout=30)
