@@ -57,6 +57,7 @@ def evaluate_views(mapper: Mapper, frames: list[Frame]) -> dict:
 def map_scene(scene_dir, cfg: MapConfig, progress: bool = True, bag_options=None) -> tuple[Mapper, dict]:
     """Map the training frames of a scene (folder or ROS 2 bag) and evaluate on its test frames."""
     scene = read_scene(scene_dir, test_every=8, bag_options=bag_options)
+    scene.require_depth()   # photo-only scenes: a clear error before any work
     mapper = Mapper(cfg)
     seconds = stream_frames(mapper, scene.train, progress)
     seconds += mapper.refine(cfg.final_iters)

@@ -51,6 +51,8 @@ def build_grounder(scene, cfg: RGConfig, supervision: str = "default", field_sec
     report: dict = {}
     t = time.perf_counter()
     if mapper is None:
+        if hasattr(scene, "require_depth"):
+            scene.require_depth()   # photo-only scenes: a clear error before any work
         mapper = Mapper(cfg.map)
         stream_frames(mapper, scene.train, progress=progress)
         mapper.refine(cfg.map.final_iters)

@@ -289,10 +289,10 @@ class Grounder:
         return self.reasoner.reason(query, vocab, image=image, mode=mode)
 
     @torch.no_grad()
-    def relevancy_view(self, target: str, scale: float, K, cam_to_world, width: int, height: int):
+    def relevancy_view(self, target: str, scale: float, K, cam_to_world, width: int, height: int, render=None):
         """Relevancy [h, w] of `target` at `scale` from any camera (0 where the map is not opaque),
-        and the field render it came from."""
-        fr = self.field.render(K, cam_to_world, width, height)
+        and the field render it came from (`render`: that camera's field render, to reuse)."""
+        fr = self.field.render(K, cam_to_world, width, height) if render is None else render
         return self._relevancy(fr, target, scale), fr
 
     def _relevancy(self, fr, target: str, scale: float, window=(slice(None), slice(None))) -> torch.Tensor:

@@ -15,6 +15,7 @@ import numpy as np
 from ..geometry.conventions import PoseError, check_rigid
 from .images import SceneError
 from .scene import Frame, Intrinsics, Scene
+from .splits import split_every
 
 _FRAME_RE = re.compile(r"^frame-(\d+)\.color\.(png|jpg)$")
 
@@ -101,15 +102,16 @@ def read_capture(root: str | Path, test_every: int = 8, trajectory: str | Path |
                 raise SceneError(str(exc)) from exc
         frames.append(Frame(index=fid, intrinsics=intr, cam_to_world=c2w, image_path=color,
                             depth_path=depth, depth_scale=1000.0, stamp=float(pos)))
-    train = [f for i, f in enumerate(frames) if test_every <= 0 or i % test_every != 0]
-    test = [f for i, f in enumerate(frames) if test_every > 0 and i % test_every == 0]
+    train, test = split_every(frames, test_every)
     return Scene(root=root, train=train, test=test, kind="capture")
 
 
 def scene_kind(root: str | Path) -> str | None:
-    """Which reader a path is for: "bag", "bop", "reasoninggd", "ycb", "capture", or None when it is
-    no scene (what read_scene dispatches on; `rg eval DIR` tells a scene from a folder of scenes by it)."""
+    """Which reader a path is for: "bag", "bop", "reasoninggd", "ycb", "capture", "llff",
+    "nerfstudio", "colmap", or None when it is no scene (what read_scene dispatches on; `rg eval DIR`
+    tells a scene from a folder of scenes by it)."""
     from .bop import is_bop
+    from .colmap import sparse_folder
     from .rosbag import is_bag
     from .ycb import is_ycb
 
@@ -124,14 +126,21 @@ def scene_kind(root: str | Path) -> str | None:
         return "ycb"
     if root.is_dir() and any(_FRAME_RE.match(p.name) for p in root.iterdir()):
         return "capture"
+    if (root / "poses_bounds.npy").is_file():   # LLFF, 3D-OVS (its sparse/ made the poses)
+        return "llff"
+    if (root / "transforms.json").is_file():    # nerfstudio, LERF (colmap/sparse/0 made the poses)
+        return "nerfstudio"
+    if root.is_dir() and sparse_folder(root) is not None:
+        return "colmap"
     return None
 
 
 def read_scene(root: str | Path, test_every: int = 8, bag_options=None, bop_options=None) -> Scene:
     """Read any supported scene: ReasoningGD layout, a real capture folder, a BOP scene folder
     (scene_camera.json + scene_gt.json; `bop_options` a bop.BopOptions, else every `test_every`-th
-    image a test view), a YCB-Video sequence folder (classes.txt + NNNNNN-meta.mat) or a ROS 2 bag (.mcap, .db3 or a rosbag2 folder; `bag_options` is a
-    rosbag.BagOptions, default options when None)."""
+    image a test view), a YCB-Video sequence folder (classes.txt + NNNNNN-meta.mat), a ROS 2 bag (.mcap, .db3 or a rosbag2 folder; `bag_options` is a
+    rosbag.BagOptions, default options when None), or photos with poses and no depth: LLFF /
+    3D-OVS (poses_bounds.npy), nerfstudio / LERF (transforms.json), a COLMAP model (sparse/0)."""
     from .bop import BopOptions, read_bop
     from .rosbag import read_bag
     from .scene import read_reasoninggd
@@ -149,7 +158,20 @@ def read_scene(root: str | Path, test_every: int = 8, bag_options=None, bop_opti
         return read_ycb_scene(root, test_every=test_every)
     if kind == "capture":
         return read_capture(root, test_every=test_every)
+    if kind == "llff":
+        from .llff import read_llff
+
+        return read_llff(root, test_every=test_every)
+    if kind == "nerfstudio":
+        from .nerfstudio import read_nerfstudio
+
+        return read_nerfstudio(root, test_every=test_every)
+    if kind == "colmap":
+        from .colmap import read_colmap
+
+        return read_colmap(root, test_every=test_every)
     raise SceneError(
         f"{root}: not a scene folder or bag (expected transforms_train.json, frame-XXXXXX.color.png files, "
-        "scene_camera.json + scene_gt.json (BOP), classes.txt + *-meta.mat (YCB-Video), a .mcap/.db3 file or a rosbag2 folder with metadata.yaml)"
+        "scene_camera.json + scene_gt.json (BOP), classes.txt + *-meta.mat (YCB-Video), a .mcap/.db3 file or a rosbag2 folder with metadata.yaml, "
+        "poses_bounds.npy (LLFF), transforms.json (nerfstudio) or a COLMAP model in sparse/0)"
     )

@@ -10,6 +10,10 @@ Layout of a scene folder (the contract benchmarks and outside tools rely on)::
     objects.json               {"objects": [{"id", "name", "category", "aabb_min", "aabb_max"}]}
     queries.json               [{"object_id", "explicit", "implicit": [...]}]
     points3d.ply               scene point cloud
+
+Frames whose entries have no `depth_file_path` read as frames without depth (depth_path None),
+as do the photo-only layouts (colmap.py, nerfstudio.py, llff.py): mapping them needs RGB-only
+mapping (issue 63), and Scene.require_depth says so before any work starts.
 """
 from __future__ import annotations
 
@@ -29,7 +33,10 @@ from ..geometry.conventions import (
     principal_point_to_corner,
     scale_intrinsics,
 )
+from .cameras import Undistortion
 from .images import SceneError, check_depth_unit, read_depth, read_mask, read_rgb
+
+NO_DEPTH = "this scene has no depth images: RGB-only mapping (issue 63) is needed"
 
 
 @dataclass(frozen=True)
@@ -55,7 +62,9 @@ class Intrinsics:
 
 @dataclass
 class Frame:
-    """One posed RGB-D view. Images load lazily from disk."""
+    """One posed view (RGB-D, or RGB only when depth_path is None). Images load lazily from disk;
+    with `undistort` set they are photos of a distorted camera, undistorted at load, and
+    `intrinsics` is the pinhole camera of the undistorted images."""
 
     index: int
     intrinsics: Intrinsics
@@ -66,16 +75,22 @@ class Frame:
     stamp: float = 0.0
     visible_mask_path: Path | None = None
     complete_mask_dir: Path | None = None
+    undistort: Undistortion | None = None   # the photos' camera is distorted: undistorted at load
+    bounds: tuple[float, float] | None = None  # near, far scene depth (LLFF's poses_bounds), if known
 
     def load_rgb(self) -> np.ndarray:  # [H, W, 3] uint8
         rgb = read_rgb(self.image_path)
+        if self.undistort is not None:
+            rgb = self.undistort.image(rgb, self.image_path)
         self._check_size(rgb, self.image_path)
         return rgb
 
     def load_depth(self) -> np.ndarray:  # [H, W] float32 metres, 0 = invalid
         if self.depth_path is None:
-            raise SceneError(f"frame {self.index}: has no depth image")
+            raise SceneError(f"frame {self.index} ({self.image_path.name}): {NO_DEPTH}")
         depth = read_depth(self.depth_path, self.depth_scale)
+        if self.undistort is not None:
+            depth = self.undistort.mask(depth, self.depth_path)
         self._check_size(depth, self.depth_path)
         check_depth_unit(depth, str(self.depth_path))
         return depth
@@ -84,6 +99,8 @@ class Frame:
         if self.visible_mask_path is None:
             raise SceneError(f"frame {self.index}: has no visible mask")
         m = read_mask(self.visible_mask_path)
+        if self.undistort is not None:
+            m = self.undistort.mask(m, self.visible_mask_path)
         self._check_size(m, self.visible_mask_path)
         return m
 
@@ -123,8 +140,20 @@ class Query:
 
 
 @dataclass
+class SparsePoints:
+    """A scene's sparse point cloud (COLMAP's points3D, points3d.ply): what RGB-only mapping
+    initialises its Gaussians from."""
+
+    xyz: np.ndarray   # [N, 3] float64 world
+    rgb: np.ndarray   # [N, 3] uint8
+    source: str = ""
+
+
+@dataclass
 class Scene:
-    """A posed RGB-D scene: training and test frames, plus ground truth where the source has it."""
+    """A posed scene: training and test frames, plus ground truth where the source has it.
+    `labels` holds an open-vocabulary benchmark's ground truth (io/ovs_labels.py: LERF-OVS,
+    3D-OVS); a benchmark that trains on its labelled views lists them in train and test."""
 
     root: Path
     train: list[Frame]
@@ -132,10 +161,38 @@ class Scene:
     objects: list[SceneObject] = field(default_factory=list)
     queries: list[Query] = field(default_factory=list)
     kind: str = "reasoninggd"
+    labels: object | None = None              # ovs_labels.BenchmarkLabels
+    points: SparsePoints | None = None        # read with the poses (COLMAP)
+    points_path: Path | None = None           # or a PLY beside them, read by load_points
 
     @property
     def frames(self) -> list[Frame]:
-        return sorted(self.train + self.test, key=lambda f: f.index)
+        return sorted({id(f): f for f in self.train + self.test}.values(), key=lambda f: f.index)
+
+    def has_depth(self) -> bool:
+        return bool(self.train) and all(f.depth_path is not None for f in self.train)
+
+    def require_depth(self) -> None:
+        """SceneError before any mapping starts when a training frame has no depth image."""
+        missing = [f for f in self.train if f.depth_path is None]
+        if missing:
+            raise SceneError(f"{self.root}: {NO_DEPTH} ({len(missing)} of {len(self.train)} training frames have "
+                             f"none, e.g. {missing[0].image_path.name}); a map built elsewhere can still be scored "
+                             "(rg eval SCENE --map MAP)")
+
+    def load_points(self) -> SparsePoints | None:
+        """The sparse points for initialisation: in memory, else the PLY at points_path, else None."""
+        if self.points is None and self.points_path is not None and Path(self.points_path).is_file():
+            from .ply import read_ply, read_ply_mesh
+
+            try:
+                xyz, rgb = read_ply(self.points_path)   # write_ply's own format, with colours
+            except SceneError:                          # any other PLY: positions, grey
+                xyz, _ = read_ply_mesh(self.points_path)
+                rgb = np.full((len(xyz), 3), 128, np.uint8)
+            self.points = SparsePoints(np.asarray(xyz, np.float64), rgb, str(self.points_path))
+        return self.points
+
 
 
 def depth_or_none(frame) -> np.ndarray | None:
@@ -230,7 +287,10 @@ def read_reasoninggd(root: str | Path) -> Scene:
             queries = [Query(**q) for q in data]
         except TypeError as exc:
             raise SceneError(f"{root / 'queries.json'}: bad query entry ({exc})") from exc
-    return Scene(root=root, train=train, test=test, objects=objects, queries=queries, kind="reasoninggd")
+    from .ovs_labels import find_labels   # LERF-OVS label files beside it (the scene's own split stays)
+
+    return Scene(root=root, train=train, test=test, objects=objects, queries=queries, kind="reasoninggd",
+                 labels=find_labels(root, train + test), points_path=root / "points3d.ply")
 
 
 def transforms_dict(frames: list[Frame], depth_scale: float = 1000.0) -> dict:
