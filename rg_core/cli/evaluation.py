@@ -42,9 +42,10 @@ def eval_scene(args, cfg) -> dict:
         from ..io.queries import read_queries
 
         scene.queries = read_queries(args.queries, scene.objects)
-    if not scene.queries or not scene.objects:
+    if (not scene.queries or not scene.objects) and scene.labels is None:
         raise ValueError(f"{args.scene}: rg eval needs ground-truth objects and queries (a ReasoningGD scene with "
-                         "objects.json and queries.json, or a BOP scene; --queries FILE gives queries)")
+                         "objects.json and queries.json, or a BOP scene; --queries FILE gives queries) or "
+                         "LERF-OVS / 3D-OVS labels (docs/scene-formats.md)")
     mapper = load_map(args.map) if args.map else None
     if mapper is not None and args.supervision == "oracle":
         mapper.field = None  # a map's own field was trained on its own supervision
@@ -60,13 +61,16 @@ def eval_scene(args, cfg) -> dict:
         report["field"] = {"trained": 0, "steps": grounder.field.steps, "reason": "--map: scored as it is"}
     report["seconds_build"] = round(time.perf_counter() - t, 3)
     report["eval"] = evaluate_queries(grounder, scene, args.implicit, progress=not args.quiet, ablation=args.ablation,
-                                      relational=getattr(args, "relational", 0))
+                                      relational=getattr(args, "relational", 0)) if scene.queries and scene.objects else {}
+    from ..eval.ovs import evaluate_labels
+
+    report["eval"].update(evaluate_labels(grounder, scene, progress=not args.quiet))   # the benchmarks' own scoring
     if scene.kind == "bop":  # how much of each amodal mask no training view saw (one viewpoint hides parts)
         from ..eval.amodal_coverage import amodal_coverage
 
         report["eval"]["amodal_unseen"] = amodal_coverage(scene)
     report["supervision_kind"] = args.supervision
-    if args.out:
+    if args.out and "queries" in report["eval"]:
         from ..grounding.confidence import load_model, threshold
         from ..report.plots import calibration_png
 
