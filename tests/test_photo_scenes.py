@@ -296,6 +296,17 @@ def test_llff_round_trip_and_axes(synth_scene, tmp_path):
     np.testing.assert_allclose(opencv_from_llff(np.eye(3, 4))[:3, :3], [[0, 1, 0], [1, 0, 0], [0, 0, -1]])
 
 
+def test_llff_downscaled_copies(synth_scene, tmp_path):
+    root = scene_as_llff(synth_scene, tmp_path / "l")
+    (root / "images").rename(root / "images_4")   # 3D-OVS-style: only the downscaled copies
+    for p in (root / "images_4").iterdir():
+        write_rgb(p, cv2.resize(read_rgb(p), (40, 30), interpolation=cv2.INTER_AREA))
+    f = read_scene(root).frames[5]
+    assert f.image_path.parent.name == "images_4" and f.load_rgb().shape == (30, 40, 3)
+    assert f.intrinsics.fx == pytest.approx(synth_scene.frames[5].intrinsics.fx / 4) and f.intrinsics.cx == 19.5
+    np.testing.assert_allclose(f.cam_to_world, synth_scene.frames[5].cam_to_world, atol=1e-6)
+
+
 def test_llff_errors(synth_scene, tmp_path):
     root = scene_as_llff(synth_scene, tmp_path / "l")
     (root / "images" / "0003.png").unlink()

@@ -4,8 +4,8 @@
 the camera-to-world rotation's axes in LLFF's order (down, right, backwards), the camera centre and
 (height, width, focal) of the photos COLMAP saw, then the near and far scene depth. The world is
 COLMAP's (LLFF only reorders the axes), so `sparse/0` points, when there, are in it too. The
-principal point is the image centre. `factor` picks `images_<factor>/` (LLFF's downscaled copies)
-and scales the focal length to its size. Every 8th image is a test view, unless 3D-OVS's
+principal point is the image centre. `factor` picks `images_<factor>/` (LLFF's downscaled copies;
+without it `images/`, else images_4, _8 or _2) and the focal length is scaled to the photos' size. Every 8th image is a test view, unless 3D-OVS's
 segmentations (or LERF-OVS labels) name the labelled views (io/ovs_labels.py).
 """
 from __future__ import annotations
@@ -46,8 +46,10 @@ def read_llff(root: str | Path, test_every: int = 8, factor: int | None = None, 
     if pb.ndim != 2 or pb.shape[1] != 17 or not len(pb) or not np.isfinite(pb).all():
         raise SceneError(f"{path}: expected a finite [N, 17] array (3x5 pose + near, far per image), got shape {pb.shape}")
     folder = root / ("images" if factor is None else f"images_{factor}")
+    if factor is None and not folder.is_dir():   # only LLFF's downscaled copies ship
+        folder = next((root / f"images_{n}" for n in (4, 8, 2) if (root / f"images_{n}").is_dir()), folder)
     if not folder.is_dir():
-        raise SceneError(f"{folder}: image folder not found")
+        raise SceneError(f"{folder}: image folder not found (images/, or images_N/ with factor N)")
     names = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if len(names) != len(pb):
         raise SceneError(f"{path}: {len(pb)} poses, but {folder} holds {len(names)} images (one pose per image, name order)")
