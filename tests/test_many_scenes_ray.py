@@ -118,11 +118,17 @@ def ray_scenes(cluster, tmp_path_factory) -> Path:
     return out
 
 
-def test_cluster_runs_scenes_on_both_nodes_with_the_sequential_figures(cluster, ray_scenes, tmp_path):
-    address, env, nodes = cluster
-    r = run_rg("eval", ray_scenes, "--results", tmp_path / "seq", *EVAL, "--json", "--quiet", env=env)
+@pytest.fixture(scope="module")
+def sequential(ray_scenes, tmp_path_factory) -> dict:
+    """The scenes evaluated one after another in one process (no Ray): the figures to match."""
+    r = run_rg("eval", ray_scenes, "--results", tmp_path_factory.mktemp("seq"), *EVAL, "--json", "--quiet")
     assert r.returncode == 0, r.stderr
-    seq = json.loads(r.stdout)
+    return json.loads(r.stdout)
+
+
+def test_cluster_runs_scenes_on_both_nodes_with_the_sequential_figures(cluster, ray_scenes, sequential, tmp_path):
+    address, env, nodes = cluster
+    seq = sequential
     r = run_rg("eval", ray_scenes, "--ray", address, "--results", tmp_path / "ray", *EVAL, "--json", "--quiet",
                env=env)
     assert r.returncode == 0, r.stderr
@@ -135,7 +141,8 @@ def test_cluster_runs_scenes_on_both_nodes_with_the_sequential_figures(cluster, 
         canonical({k: v for k, v in seq["aggregate"].items() if k != "seconds"})
 
 
-def test_a_killed_worker_loses_only_its_scene_and_a_rerun_completes_it(cluster, ray_scenes, tmp_path, monkeypatch):
+def test_a_killed_worker_loses_only_its_scene_and_a_rerun_completes_it(cluster, ray_scenes, sequential, tmp_path,
+                                                                       monkeypatch):
     from rg_core.cli import build_parser
     from rg_core.cli.config_args import apply_overrides
     from rg_core.cli.many import eval_many
@@ -164,9 +171,7 @@ def test_a_killed_worker_loses_only_its_scene_and_a_rerun_completes_it(cluster, 
     again = json.loads(r.stdout)
     assert again["run"]["tasks"] == 1 and again["run"]["skipped_ok"] == 3, again["run"]
     assert all(s["status"] == "ok" for s in again["scenes"]) and again["aggregate"]["scenes"] == {"ok": 4, "failed": 0}
-    r = run_rg("eval", ray_scenes, "--results", tmp_path / "seq", *EVAL, "--json", "--quiet", env=env)
-    assert r.returncode == 0, r.stderr
-    assert scene_figures(again) == scene_figures(json.loads(r.stdout))
+    assert scene_figures(again) == scene_figures(sequential)
 
 
 def test_local_workers(ray_scenes, tmp_path):

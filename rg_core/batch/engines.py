@@ -51,14 +51,17 @@ def cores() -> int:
 
 
 def execute(fn_ref: str, name: str, payload: dict, threads: int = 0, node: str = "local") -> dict:
-    """Run one task -> its record. `threads` > 0: torch's thread count for it (tasks sharing a
-    machine must not each take every core)."""
+    """Run one task -> its record. `threads` > 0: torch's thread count while it runs (restored after):
+    the same count wherever a task runs keeps its figures the same, since a thread count changes
+    how torch splits its reductions and so their float rounding."""
     t0 = time.perf_counter()
     rec = {"scene": name, "node": node, "host": socket.gethostname(), "pid": os.getpid(), "threads": threads}
+    old = None
     try:
         if threads > 0:
             import torch
 
+            old = torch.get_num_threads()
             torch.set_num_threads(threads)
         module, _, attr = fn_ref.partition(":")
         result = getattr(importlib.import_module(module), attr)(payload)
@@ -66,31 +69,20 @@ def execute(fn_ref: str, name: str, payload: dict, threads: int = 0, node: str =
     except (Exception, MemoryError) as exc:   # noqa: BLE001 - every failure is the task's record
         rec.update(status="failed", error=f"{type(exc).__name__}: {exc}", result=None,
                    traceback="".join(traceback.format_exception(exc))[-4000:])
+    finally:
+        if old is not None:
+            import torch
+
+            torch.set_num_threads(old)
     rec["seconds"] = round(time.perf_counter() - t0, 3)
     return rec
 
 
-def _ray_execute(fn_ref: str, name: str, payload: dict) -> dict:
-    """execute() inside a Ray worker: torch threads = this node's cores / its Ray CPUs (the tasks it
-    runs at once), and the node's id in the record."""
+def _ray_execute(fn_ref: str, name: str, payload: dict, threads: int) -> dict:
+    """execute() inside a Ray worker, with the node's id in the record."""
     import ray
 
-    ctx = ray.get_runtime_context()
-    node = ctx.get_node_id()
-    per_node = _node_cpus(node)
-    return execute(fn_ref, name, payload, max(1, cores() // max(1, per_node)), node)
-
-
-_NODE_CPUS: dict[str, int] = {}
-
-
-def _node_cpus(node: str) -> int:
-    if node not in _NODE_CPUS:
-        import ray
-
-        for n in ray.nodes():
-            _NODE_CPUS[n["NodeID"]] = int(n.get("Resources", {}).get("CPU", 1))
-    return _NODE_CPUS.get(node, 1)
+    return execute(fn_ref, name, payload, threads, ray.get_runtime_context().get_node_id())
 
 
 def _crash_record(name: str, exc: BaseException) -> dict:
@@ -101,11 +93,13 @@ def _crash_record(name: str, exc: BaseException) -> dict:
 
 
 def run_tasks(fn_ref: str, tasks: list, on_record: Callable[[object, dict], None], engine: str = "local",
-              workers: int = 1, address: str | None = None, progress: bool = True,
+              workers: int = 1, address: str | None = None, progress: bool = True, threads: int = 0,
               ray_init: dict | None = None) -> None:
     """Run each task (`.name`, `.payload`) with `fn_ref`; call on_record(task, record) in this process
-    as each finishes (in finishing order). engine "ray": `address` None starts Ray here with
-    `workers` CPUs (one task each); "auto" or "host:port" joins a running cluster."""
+    as each finishes (in finishing order). `threads` > 0: each task's torch threads, and on Ray the
+    CPUs it asks for (so a node runs at most its CPUs / threads tasks at once: never more threads
+    than cores). engine "ray": `address` None starts Ray here for `workers` tasks at once; "auto" or
+    "host:port" joins a running cluster."""
     from tqdm import tqdm
 
     bar = tqdm(total=len(tasks), desc="scenes", unit="scene", disable=not progress, file=sys.stderr)
@@ -113,24 +107,25 @@ def run_tasks(fn_ref: str, tasks: list, on_record: Callable[[object, dict], None
         if engine == "local":
             for t in tasks:
                 bar.set_postfix_str(t.name, refresh=False)
-                on_record(t, execute(fn_ref, t.name, t.payload))
+                on_record(t, execute(fn_ref, t.name, t.payload, threads))
                 bar.update()
         elif engine == "ray":
-            _run_ray(fn_ref, tasks, on_record, workers, address, bar, ray_init or {})
+            _run_ray(fn_ref, tasks, on_record, workers, address, bar, threads, ray_init or {})
         else:
             raise ValueError(f"engine must be 'local' or 'ray', got {engine!r}")
     finally:
         bar.close()
 
 
-def _run_ray(fn_ref: str, tasks: list, on_record, workers: int, address: str | None, bar, ray_init: dict) -> None:
+def _run_ray(fn_ref: str, tasks: list, on_record, workers: int, address: str | None, bar, threads: int,
+             ray_init: dict) -> None:
     ray = import_ray()
     started_here = not ray.is_initialized()
     if started_here:
         kw = dict(include_dashboard=False, log_to_driver=False, configure_logging=False, **ray_init)
         try:
             if address is None:
-                ray.init(num_cpus=workers, **kw)
+                ray.init(num_cpus=workers * max(1, threads), **kw)
             else:
                 ray.init(address=address, **kw)
         except ConnectionError as exc:
@@ -139,8 +134,9 @@ def _run_ray(fn_ref: str, tasks: list, on_record, workers: int, address: str | N
                               "--ray without an address for local workers") from exc
     try:
         # SPREAD: a cluster's nodes share the scenes, rather than the driver's node taking them first
-        remote = ray.remote(num_cpus=1, max_retries=0, scheduling_strategy="SPREAD")(_ray_execute)
-        window = max(2, 2 * int(ray.cluster_resources().get("CPU", workers)))   # tasks in flight at once
+        cpus = max(1, threads)
+        remote = ray.remote(num_cpus=cpus, max_retries=0, scheduling_strategy="SPREAD")(_ray_execute)
+        window = max(2, 2 * int(ray.cluster_resources().get("CPU", workers)) // cpus)   # tasks in flight at once
         pending = iter(tasks)
         inflight: dict = {}
 
@@ -149,7 +145,7 @@ def _run_ray(fn_ref: str, tasks: list, on_record, workers: int, address: str | N
                 t = next(pending, None)
                 if t is None:
                     return
-                inflight[remote.remote(fn_ref, t.name, t.payload)] = t
+                inflight[remote.remote(fn_ref, t.name, t.payload, threads)] = t
 
         submit(window)
         while inflight:

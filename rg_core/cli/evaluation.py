@@ -81,9 +81,12 @@ def eval_scene(args, cfg) -> dict:
 
 
 def eval_task(payload: dict) -> dict:
-    """One scene's `rg eval` in a task (any process): the single-scene command, quiet."""
+    """One scene's `rg eval` in a task (any process): the single-scene command, quiet, from the
+    text embeddings a fresh process has (what ran before in the process changes no figure)."""
     from ..config import config_from_dict
+    from ..perception.reasoning.text import forget_text_embeddings
 
+    forget_text_embeddings()
     return eval_scene(argparse.Namespace(**payload["args"]), config_from_dict(payload["config"]))
 
 
@@ -112,8 +115,8 @@ def add_eval(sub) -> None:
               help="models of the default supervision: offline, paper, paper_cpu (default: config)")
     p.add_argument("--out", help="folder for PNGs: risk against coverage and reliability of the confidence; many "
                                  "scenes: aggregate.json, table.txt and scenes.png (default: the --results folder)")
-    add_engine_args(p, "local Ray workers for --ray without an address (default: the cores); each task's torch "
-                       "threads are cores / workers")
+    add_engine_args(p, "tasks at once on local Ray workers, --ray without an address (default: cores / --threads)",
+                    threads=True)
     add_common(p)
     add_sections(p, ("map", "field", "ground", "reason", "models"))
     p.set_defaults(func=cmd_eval)

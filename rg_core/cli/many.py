@@ -25,24 +25,34 @@ _RUN_ONLY = {"func", "human", "json", "quiet", "ray", "workers", "results", "ret
              "command", "seeds"}
 
 
-def add_engine_args(p, workers_help: str | None) -> None:
-    """--ray [ADDRESS], --workers N (unless the command has its own), --results DIR, --retry-failed."""
+def add_engine_args(p, workers_help: str | None, threads: bool = False) -> None:
+    """--ray [ADDRESS], --workers N (unless the command has its own), --threads N (torch's, per task),
+    --results DIR, --retry-failed."""
     p.add_argument("--ray", nargs="?", const=LOCAL, metavar="ADDRESS",
                    help="run the scenes as Ray tasks: without ADDRESS on --workers local workers, 'auto' or "
                         "HOST:PORT to join a running cluster (needs pip install .[ray])")
     if workers_help:
         p.add_argument("--workers", type=positive, help=workers_help)
+    if threads:
+        p.add_argument("--threads", type=positive, default=1, metavar="N",
+                       help="many scenes: torch threads of each scene's task, and the CPUs it takes on Ray "
+                            "(default 1: the figures are the same on any engine, worker count or cluster, since "
+                            "a thread count changes float rounding; scenes run side by side instead)")
     p.add_argument("--results", metavar="DIR", help="one JSON per scene, written when it finishes; a rerun skips "
                                                     "the finished scenes")
     p.add_argument("--retry-failed", action="store_true", help="with --results: run the failed scenes again")
 
 
-def _engine(args, workers: int | None) -> tuple[str, int, str | None]:
-    """(engine name, local Ray workers, cluster address) from --ray / --workers."""
+def _engine(args, workers: int | None, threads: int = 1) -> tuple[str, int, str | None]:
+    """(engine name, local Ray workers, cluster address) from --ray / --workers; local workers
+    default to as many as the cores hold tasks of `threads` threads."""
     if args.ray is None:
         return "local", 1, None
     if args.ray == LOCAL:
-        return "ray", workers or cores(), None
+        if workers and workers * threads > cores():
+            print(f"rg: --workers {workers} x --threads {threads} is more threads than this machine's {cores()} "
+                  "cores: the tasks will share them", file=sys.stderr)
+        return "ray", workers or max(1, cores() // threads), None
     if workers:
         raise ValueError(f"--workers is for local Ray workers; the cluster at --ray {args.ray} has its own CPUs "
                          "(one scene a CPU)")
@@ -79,7 +89,7 @@ def eval_many(args, cfg, task: str = EVAL_TASK) -> "ManyResult":
             raise ValueError(f"{why}; with many scenes each builds its own (give one scene, or leave out --{flag})")
     if args.retry_failed and not args.results:
         raise ValueError("--retry-failed needs --results DIR (the folder of the run to complete)")
-    engine, workers, address = _engine(args, args.workers)
+    engine, workers, address = _engine(args, args.workers, args.threads)
     if engine == "local" and args.workers:
         raise ValueError("--workers needs --ray (without it the scenes run one after another in this process)")
     info = engine_info(engine)   # first: without Ray, say how to install it before anything else
@@ -88,7 +98,7 @@ def eval_many(args, cfg, task: str = EVAL_TASK) -> "ManyResult":
     base = {k: v for k, v in vars(args).items() if k not in ("func", "human")}
     base.update(quiet=True, json=False, out=None, ray=None, results=None, workers=None, retry_failed=False)
     conf = config_to_dict(cfg)
-    settings = {"args": {k: v for k, v in sorted(base.items()) if k not in _RUN_ONLY}, "config": conf}
+    settings = {"args": {k: v for k, v in sorted(base.items()) if k not in _RUN_ONLY}, "config": conf}   # threads too
     tasks = [Task(n, {"args": {**base, "scene": str(p)}, "config": conf}, settings) for n, p in zip(scene_names, paths)]
     rd, keep = _results_dir(args)
     todo, skipped = rd.pending(tasks, args.retry_failed)
@@ -96,8 +106,8 @@ def eval_many(args, cfg, task: str = EVAL_TASK) -> "ManyResult":
     def on_record(t, rec):
         rd.write({**rec, "path": t.payload["args"]["scene"], "engine": info, "settings": t.settings})
 
-    run_tasks(task, todo, on_record, engine, workers, address, progress=not args.quiet)
-    run = {"tasks": len(todo), "skipped_ok": skipped["ok"], "skipped_failed": skipped["failed"],
+    run_tasks(task, todo, on_record, engine, workers, address, progress=not args.quiet, threads=args.threads)
+    run = {"tasks": len(todo), "threads": args.threads, "skipped_ok": skipped["ok"], "skipped_failed": skipped["failed"],
            "workers": workers if engine == "ray" and address is None else None, "address": address,
            "driver_peak_rss_mb": round(peak_rss_mb(), 1)}   # this process: flat in the number of scenes
     out_dir = Path(args.out) if args.out else rd.root

@@ -44,6 +44,18 @@ def shared_text_model():
     return _SHARED_TEXT
 
 
+def forget_text_embeddings() -> None:
+    """Empty this process's text embeddings (MiniLM's KNOWN and the shared reasoner cache). Texts are
+    embedded in batches whose padding changes their float rounding, so a scene evaluated after others
+    in one process got slightly other embeddings than in a fresh one; many-scene tasks start from
+    here, and a scene's figures are then the same in any process, after any other scene."""
+    from ..minilm import KNOWN
+
+    KNOWN.clear()
+    if _SHARED_TEXT is not None:
+        _SHARED_TEXT.cache.clear()
+
+
 class TextReasoner(Reasoner):
     """Offline default: each vocabulary name scored by MiniLM similarity of the query to the name
     and to the name's WordNet knowledge text (+ an optional LLM scorer's log-likelihoods), with
