@@ -16,7 +16,7 @@ import yaml
 from .constants import CACHE_DIR, MAX_QUERY_CHARS  # noqa: F401 - the package's API
 from .field import FieldConfig
 from .ground import GroundConfig
-from .mapping import MapConfig
+from .mapping import MapConfig, PhotoMapConfig
 from .models import ModelsConfig
 from .reason import ReasonConfig
 from .schema import ConfigError, check_fields, from_dict, section  # noqa: F401 - the package's API
@@ -30,6 +30,7 @@ class RGConfig:
     synth: SynthConfig = dataclasses.field(default_factory=SynthConfig)
     demo: DemoConfig = dataclasses.field(default_factory=DemoConfig)
     map: MapConfig = dataclasses.field(default_factory=MapConfig)
+    photo: PhotoMapConfig = dataclasses.field(default_factory=PhotoMapConfig)
     field: FieldConfig = dataclasses.field(default_factory=FieldConfig)
     ground: GroundConfig = dataclasses.field(default_factory=GroundConfig)
     reason: ReasonConfig = dataclasses.field(default_factory=ReasonConfig)

@@ -115,3 +115,45 @@ class MapConfig:
     far: float = 30.0
     seed: int = 0
     """Random seed of keyframe sampling and seed subsampling."""
+
+
+@section
+class PhotoMapConfig:
+    """Maps from posed photos without depth (issue 63): standard 3D Gaussian Splatting optimisation
+    (Kerbl et al. 2023) with the project's rasterizer (rg_core/map/photo_fit.py). Iterations are
+    counted, not seconds, so a seed stops at the same step on any CPU."""
+
+    iters: Annotated[int, Interval(ge=1)] = 7000
+    """Ceiling on optimisation steps (one view per step); the held-out test usually ends it first."""
+    lambda_dssim: Annotated[float, Interval(ge=0.0, le=1.0)] = 0.2
+    """Loss = (1 - lambda) L1 + lambda (1 - SSIM), 3DGS's weighting."""
+    init_random: Annotated[int, Interval(ge=1)] = 5000
+    """Gaussians drawn at random in the cameras' view volume when the scene has no sparse points."""
+    densify_from: Annotated[int, Interval(ge=0)] = 300
+    densify_until: Annotated[float, Interval(ge=0.0, le=1.0)] = 0.5
+    """Adaptive density control runs from step densify_from to this share of `iters`."""
+    densify_every: Annotated[int, Interval(ge=1)] = 100
+    grad_threshold: Annotated[float, Interval(gt=0.0)] = 0.0002
+    """Mean view-space positional gradient (NDC units, as 3DGS) above which a Gaussian is cloned
+    (small) or split (large)."""
+    dense_share: Annotated[float, Interval(gt=0.0, lt=1.0)] = 0.01
+    """Small / large: largest axis below / above this share of the scene extent."""
+    prune_opacity: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.005
+    prune_extent_share: Annotated[float, Interval(gt=0.0)] = 0.1
+    """After the first opacity reset, Gaussians larger than this share of the extent go too."""
+    reset_opacity_every: Annotated[int, Interval(ge=0)] = 3000
+    """Opacities are clamped to 0.01 every this many steps while densifying (0 = never)."""
+    holdout: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.05
+    """Share of each view's pixels kept out of training for the stop test."""
+    check_every: Annotated[int, Interval(ge=1)] = 200
+    converge_db: Annotated[float, Interval(ge=0.0)] = 0.05
+    """Converged once the best held-out PSNR gained less than this (dB) over the last
+    `converge_window` steps, after densification ended (0: run all `iters`)."""
+    converge_window: Annotated[int, Interval(ge=1)] = 600
+    lr_means: float = 0.00016
+    """x the scene extent, decayed exponentially to 1 % over `iters` (3DGS)."""
+    lr_scales: float = 0.005
+    lr_quats: float = 0.001
+    lr_opacity: float = 0.05
+    lr_colors: float = 0.0025
+    seed: int = 0

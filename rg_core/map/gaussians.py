@@ -72,6 +72,14 @@ class GaussianModel:
         for k in PARAMS:
             setattr(self, k, torch.cat([getattr(self, k).detach()[keep], new[k].detach()]))
 
+    def duplicate(self, idx: torch.Tensor) -> None:
+        """Append a copy of the Gaussians idx [M] (3D Gaussian Splatting's clone: the copy then
+        moves along its own gradient)."""
+        idx = torch.as_tensor(idx, dtype=torch.long)
+        for k in PARAMS:
+            t = getattr(self, k).detach()
+            setattr(self, k, torch.cat([t, t[idx]]))
+
     def keep(self, mask: torch.Tensor) -> None:
         """Keep only Gaussians where mask [N] is True."""
         for k in PARAMS:

@@ -1,0 +1,276 @@
+"""A Gaussian map from posed photos without depth (issue 63): standard 3D Gaussian Splatting
+optimisation (Kerbl et al. 2023) with the project's rasterizer, then the rendered depth stands in
+for the sensor's, so supervision, the field and grounding run unchanged (the paper's order: a 3DGS
+field first, features after).
+
+- Initialisation: the sparse points (COLMAP points3D, points3d.ply) with 3DGS's scale rule (mean
+  distance to the 3 nearest neighbours), or `init_random` points in the cameras' view volume.
+- Loss: (1 - lambda) L1 + lambda D-SSIM (pytorch_msssim's SSIM, an 11 px Gaussian window) of the
+  render composited over the learnt background.
+- Adaptive density control: the mean view-space positional gradient (NDC units) of each Gaussian
+  above `grad_threshold` clones the small ones and splits the large ones; low opacity (and, after
+  the first opacity reset, a size above `prune_extent_share` of the scene) prunes; opacities are
+  reset to 0.01 every `reset_opacity_every` steps while densifying. `max_gaussians` bounds it.
+- Stop: held-out pixels of every view (`holdout`) are never trained on; their PSNR is measured every
+  `check_every` steps, and once density control ended, the fit stops when the best PSNR gained less
+  than `converge_db` over `converge_window` steps (`iters` is the ceiling). tqdm shows progress.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from ..config import MapConfig, PhotoMapConfig
+from ..render.rasterize import rasterize
+from .gaussians import PARAMS, GaussianModel, ResizableAdam
+
+
+@dataclass
+class PhotoView:
+    """One posed photo at the working resolution."""
+
+    rgb: torch.Tensor          # [H, W, 3] float32 in [0, 1]
+    K: np.ndarray              # [3, 3]
+    cam_to_world: np.ndarray   # [4, 4] OpenCV axes
+    index: int = 0
+    stamp: float = 0.0
+
+
+@dataclass
+class PhotoFit:
+    """The fitted Gaussians and how the fit went: history rows (step, seconds, held-out PSNR dB,
+    Gaussians), why it stopped, density-control counts."""
+
+    gaussians: GaussianModel
+    history: list = field(default_factory=list)
+    stopped: str = ""
+    steps: int = 0
+    seconds: float = 0.0
+    totals: dict = field(default_factory=dict)
+    extent: float = 1.0
+
+
+def scene_extent(views: list[PhotoView]) -> float:
+    """3DGS's scene radius: 1.1 x the largest distance of a camera centre from their mean (at least
+    a small floor for a single or static camera)."""
+    c = np.stack([v.cam_to_world[:3, 3] for v in views])
+    return float(max(1.1 * np.linalg.norm(c - c.mean(0), axis=1).max(), 0.1))
+
+
+def initial_points(views: list[PhotoView], n: int, near: float, far: float,
+                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(points [n, 3], colours [n, 3] in [0, 1]) drawn uniformly in the views' frusta between near
+    and far (depth uniform in inverse depth, so near space is not starved), coloured grey."""
+    pts = []
+    for i in range(n):
+        v = views[int(rng.integers(len(views)))]
+        h, w = v.rgb.shape[:2]
+        u, vv = rng.uniform(0, w), rng.uniform(0, h)
+        z = 1.0 / rng.uniform(1.0 / far, 1.0 / near)
+        K = v.K
+        x = np.array([(u - K[0, 2]) / K[0, 0] * z, (vv - K[1, 2]) / K[1, 1] * z, z, 1.0])
+        pts.append((v.cam_to_world @ x)[:3])
+    return np.asarray(pts, np.float64), np.full((n, 3), 0.5)
+
+
+def gaussians_from_points(points: np.ndarray, colors: np.ndarray, init_opacity: float = 0.1) -> GaussianModel:
+    """Isotropic Gaussians at points [N, 3] with colours [N, 3] in [0, 1]; scale = mean distance to
+    the 3 nearest other points (3DGS), floored so that duplicates never give a zero scale."""
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, np.float64)
+    ok = np.isfinite(points).all(1)
+    points, colors = points[ok], np.asarray(colors, np.float64)[ok]
+    if len(points) < 4:
+        raise ValueError(f"photo map: need at least 4 finite initial points, got {len(points)}")
+    d, _ = cKDTree(points).query(points, k=4)
+    s = np.sqrt(np.maximum((d[:, 1:] ** 2).mean(1), 1e-14))
+    g = GaussianModel()
+    g.append(torch.from_numpy(points).float(), torch.from_numpy(s).float(),
+             torch.from_numpy(np.clip(colors, 0, 1)).float(), init_opacity)
+    return g
+
+
+def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """SSIM of two images [H, W, 3] in [0, 1] (pytorch_msssim, 11 px Gaussian window, sigma 1.5)."""
+    from pytorch_msssim import ssim as _ssim
+
+    return _ssim(a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None], data_range=1.0, size_average=True,
+                 win_size=11 if min(a.shape[:2]) >= 11 else (min(a.shape[:2]) // 2) * 2 - 1)
+
+
+class PhotoFitter:
+    """fit() runs the optimisation; one instance per map."""
+
+    def __init__(self, views: list[PhotoView], cfg: PhotoMapConfig | None = None, map_cfg: MapConfig | None = None,
+                 points: np.ndarray | None = None, colors: np.ndarray | None = None):
+        if not views:
+            raise ValueError("photo map: no views to fit")
+        self.views, self.cfg, self.map_cfg = views, cfg or PhotoMapConfig(), map_cfg or MapConfig()
+        c = self.cfg
+        self.rng = np.random.default_rng(c.seed)
+        self.gen = torch.Generator().manual_seed(c.seed)
+        self.extent = scene_extent(views)
+        if points is None or len(points) < 4:
+            points, colors = initial_points(views, c.init_random, self.map_cfg.near, min(self.map_cfg.far, 10 * self.extent),
+                                            self.rng)
+        self.g = gaussians_from_points(points, colors if colors is not None else np.full((len(points), 3), 0.5))
+        self.optim = ResizableAdam(self.g, {"means": c.lr_means * self.extent, "log_scales": c.lr_scales,
+                                            "quats": c.lr_quats, "opacity_logits": c.lr_opacity,
+                                            "colors": c.lr_colors, "background": c.lr_colors})
+        self.holdout = [torch.rand(v.rgb.shape[:2], generator=self.gen) < c.holdout for v in views]  # [H, W] bool each
+        self._grad = torch.zeros(len(self.g))
+        self._seen = torch.zeros(len(self.g))
+        self.totals = {"cloned": 0, "split": 0, "pruned": 0, "resets": 0}
+        self.reset_done = False
+
+    def _render(self, v: PhotoView, params: dict):
+        h, w = v.rgb.shape[:2]
+        from ..render.camera import Camera
+
+        cam = Camera.from_numpy(v.K, v.cam_to_world, w, h, self.map_cfg.near, self.map_cfg.far)
+        out = rasterize(params["means"], torch.exp(params["log_scales"]), params["quats"],
+                        torch.sigmoid(params["opacity_logits"]), params["colors"], cam,
+                        antialiased=self.map_cfg.antialiased)
+        rgb = out.channels + (1.0 - out.alpha)[..., None] * params["background"]
+        return out, rgb
+
+    def step(self, it: int) -> float:
+        c, v_i = self.cfg, int(self.rng.integers(len(self.views)))
+        v, hold = self.views[v_i], self.holdout[v_i]
+        params = {k: t.detach().requires_grad_(True) for k, t in self.g.tensors().items()}
+        out, rgb = self._render(v, params)
+        m2d = out.projected.means2d if out.projected is not None else None
+        if m2d is not None and m2d.requires_grad:
+            m2d.retain_grad()
+        train = ~hold
+        target = torch.where(hold[..., None], rgb.detach(), v.rgb)      # held-out pixels add no error
+        l1 = ((rgb - v.rgb).abs() * train[..., None]).sum() / (3 * train.sum().clamp(min=1))
+        loss = (1 - c.lambda_dssim) * l1 + c.lambda_dssim * (1 - ssim(rgb, target))
+        loss.backward()
+        decay = 0.01 ** min(1.0, it / max(c.iters, 1))                 # 3DGS: exponential to 1 %
+        self.optim.lrs["means"] = c.lr_means * self.extent * decay
+        self.optim.step({k: p.grad for k, p in params.items()})
+        self.g.colors = self.g.colors.clamp(0.0, 1.0)
+        if m2d is not None and m2d.grad is not None:
+            h, w = v.rgb.shape[:2]
+            gn = (m2d.grad * torch.tensor([w / 2.0, h / 2.0])).norm(dim=1)   # [N] NDC units
+            seen = out.projected.radii > 0
+            self._grad[seen] += gn[seen]
+            self._seen[seen] += 1
+        return float(loss.detach())
+
+    def _densify_and_prune(self, it: int, densifying: bool) -> None:
+        c, g = self.cfg, self.g
+        if densifying:
+            mean = self._grad / self._seen.clamp(min=1)
+            big = g.scales.max(1).values > c.dense_share * self.extent
+            hot = mean >= c.grad_threshold
+            room = max(self.map_cfg.max_gaussians - len(g), 0)
+            clone = torch.nonzero(hot & ~big).squeeze(1)
+            split = torch.nonzero(hot & big).squeeze(1)
+            if len(clone) + len(split) > room:   # the strongest gradients first
+                order = torch.argsort(mean[torch.cat([clone, split])], descending=True)[:room]
+                keep = torch.zeros(len(clone) + len(split), dtype=torch.bool)
+                keep[order] = True
+                clone, split = clone[keep[:len(clone)]], split[keep[len(clone):]]
+            n0 = len(g)
+            if len(clone):
+                g.duplicate(clone)
+            # split's indices still point at the original rows (duplicate appends at the end)
+            if len(split):
+                g.split(split, self.gen)
+            self.totals["cloned"] += len(clone)
+            self.totals["split"] += len(split)
+            self._rebuild_optim(n0, clone, split)
+        kill = g.opacities < c.prune_opacity
+        if self.reset_done:
+            kill |= g.scales.max(1).values > c.prune_extent_share * self.extent
+        if kill.all():
+            kill[torch.argmax(g.opacities)] = False   # never an empty map
+        if kill.any():
+            g.keep(~kill)
+            self.optim.keep(~kill)
+            self.totals["pruned"] += int(kill.sum())
+        self._grad = torch.zeros(len(g))
+        self._seen = torch.zeros(len(g))
+
+    def _rebuild_optim(self, n0: int, clone: torch.Tensor, split: torch.Tensor) -> None:
+        """Moments after clone (rows appended) and split (parents removed, children appended): the
+        survivors keep theirs, new rows start at zero."""
+        keep = torch.ones(n0 + len(clone), dtype=torch.bool)
+        keep[split] = False
+        self.optim.sync()        # grow to n0 + clones with zeros ...
+        for k in PARAMS:         # ... then drop the split parents and grow for the children
+            m, v = self.optim.m[k][: n0 + len(clone)], self.optim.v[k][: n0 + len(clone)]
+            self.optim.m[k], self.optim.v[k] = m[keep], v[keep]
+        self.optim.sync()
+
+    @torch.no_grad()
+    def heldout_psnr(self) -> float:
+        """PSNR (dB) over the held-out pixels of every view."""
+        se, n = 0.0, 0
+        params = self.g.tensors()
+        for v, hold in zip(self.views, self.holdout):
+            _, rgb = self._render(v, params)
+            d = (rgb.clamp(0, 1) - v.rgb)[hold]
+            se += float((d * d).sum())
+            n += int(d.numel())
+        mse = se / max(n, 1)
+        return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
+
+    def fit(self, progress: bool = True) -> PhotoFit:
+        from tqdm import tqdm
+
+        c, t0 = self.cfg, time.perf_counter()
+        until = int(c.densify_until * c.iters)
+        hist, stopped, it = [], "budget", 0
+        bar = tqdm(total=c.iters, desc="photo map", unit="step", disable=not progress, leave=False)
+        for it in range(1, c.iters + 1):
+            loss = self.step(it)
+            if not math.isfinite(loss):
+                raise FloatingPointError(f"photo map: loss is {loss} at step {it} (diverged)")
+            densifying = c.densify_from <= it <= until
+            if it % c.densify_every == 0 and it >= c.densify_from:
+                self._densify_and_prune(it, densifying)
+            if densifying and c.reset_opacity_every and it % c.reset_opacity_every == 0:
+                self.g.opacity_logits = torch.minimum(self.g.opacity_logits, torch.full_like(self.g.opacity_logits,
+                                                                                          math.log(0.01 / 0.99)))
+                self.totals["resets"] += 1
+                self.reset_done = True
+            if it % c.check_every == 0 or it == c.iters:
+                p = self.heldout_psnr()
+                hist.append((it, time.perf_counter() - t0, p, len(self.g)))
+                bar.set_postfix(psnr=f"{p:.2f}", gaussians=len(self.g))
+                if c.converge_db > 0 and it > until and self._converged(hist, until):
+                    stopped = "converged"
+                    break
+            bar.update(1)
+        bar.close()
+        return PhotoFit(self.g, hist, stopped, it, time.perf_counter() - t0, dict(self.totals), self.extent)
+
+    def _converged(self, hist: list, until: int) -> bool:
+        c = self.cfg
+        after = [h for h in hist if h[0] > until]
+        if not after or after[-1][0] - after[0][0] < c.converge_window:
+            return False
+        now = after[-1][0]
+        best_before = max([h[2] for h in after if h[0] <= now - c.converge_window], default=-math.inf)
+        best_now = max(h[2] for h in after)
+        return best_now - best_before < c.converge_db
+
+
+@torch.no_grad()
+def rendered_depth(g: GaussianModel, v: PhotoView, map_cfg: MapConfig, min_alpha: float = 0.5) -> torch.Tensor:
+    """[H, W] metres: the fitted map's expected depth where it is opaque (alpha >= min_alpha), else
+    0 (invalid), what the supervision's physical scales then read as the sensor's depth."""
+    from ..render.camera import Camera
+
+    h, w = v.rgb.shape[:2]
+    cam = Camera.from_numpy(v.K, v.cam_to_world, w, h, map_cfg.near, map_cfg.far)
+    out = rasterize(g.means, g.scales, g.quats, g.opacities, g.colors, cam, antialiased=map_cfg.antialiased)
+    return torch.where(out.alpha >= min_alpha, out.depth, torch.zeros_like(out.depth))
