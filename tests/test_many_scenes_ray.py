@@ -53,8 +53,8 @@ def processes_under(root: Path) -> list[int]:
 
 
 def end_processes(root: Path) -> list[int]:
-    """SIGTERM, then SIGKILL after up to 15 s, every process of the cluster under `root`; the pids left."""
-    for sig, wait in ((signal.SIGTERM, 15.0), (signal.SIGKILL, 5.0)):
+    """SIGTERM, then SIGKILL after up to 5 s, every process of the cluster under `root`; the pids left."""
+    for sig, wait in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
         for pid in processes_under(root):
             try:
                 os.kill(pid, sig)
