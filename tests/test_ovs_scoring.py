@@ -349,3 +349,19 @@ def test_3d_ovs_over_a_grounded_map(grounder, synth_scene, tmp_path):
     bad = evaluate_labels(grounder, s)["3d_ovs"]
     assert out["3d_selection"]["miou"] >= 50 and bad["3d_selection"]["miou"] < out["3d_selection"]["miou"] - 30, (out, bad)
     assert out["2d_relevancy"]["miou"] > bad["2d_relevancy"]["miou"], (out, bad)
+
+
+def test_rg_eval_on_photos_without_depth_scores_a_map_built_elsewhere(synth_scene, minilm_map_file, tmp_path):
+    """The session scene as COLMAP photos (no depth, no objects, no queries) with LERF-OVS labels:
+    `rg eval --map` scores the RGB-D map of the same views with the benchmark's figures only."""
+    pytest.importorskip("pycolmap")
+    from test_photo_scenes import scene_as_colmap
+
+    root = scene_as_colmap(synth_scene, tmp_path / "photos")
+    label_files(synth_scene, root / "label")
+    r = subprocess.run([sys.executable, "-m", "rg_core.cli", "eval", str(root), "--map", str(minilm_map_file), "--json",
+                        "--quiet"], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    ev = json.loads(r.stdout)["eval"]
+    assert set(ev) == {"lerf_ovs"} and ev["lerf_ovs"]["views"] == 2, ev
+    assert ev["lerf_ovs"]["3d_selection"]["miou"] >= 50, ev

@@ -62,7 +62,7 @@ class ViewLabels:
         out = {}
         for c, b in self.boxes.items():
             lo, hi = np.minimum(b[:, :2], b[:, 2:]), np.maximum(b[:, :2], b[:, 2:])
-            lo, hi = (lo + 0.5) * [sx, sy] - 0.5, (hi + 0.5) * [sx, sy] - 0.5   # pixel centres scale so
+            lo, hi = (lo + 0.5) * [sx, sy] - 0.5, (hi + 0.5) * [sx, sy] - 0.5   # about pixel centres, as K scales
             und = getattr(self.frame, "undistort", None)
             if und is not None:   # the box of the box's outline, undistorted
                 t = np.linspace(0.0, 1.0, 17)[:, None]
