@@ -123,3 +123,65 @@ def test_ssim_of_equal_images_is_one_and_drops_with_noise():
     b = (a + 0.2 * torch.randn(40, 50, 3, generator=torch.Generator().manual_seed(1))).clamp(0, 1)
     assert float(ssim(a, b)) < 0.9
     assert math.isfinite(float(ssim(torch.zeros(8, 8, 3), torch.zeros(8, 8, 3))))   # smaller than the window
+
+
+# ------------------------------------------------------------------------------ the scene without depth, end to end
+
+@pytest.fixture(scope="module")
+def photo_scene(tmp_path_factory):
+    """A synthetic scene with its depth images and depth_file_path entries removed (the
+    ReasoningGD layout of photos alone) and a 1,500-point sparse cloud."""
+    import json
+    import shutil
+
+    from rg_core.io.ply import write_ply
+
+    out = tmp_path_factory.mktemp("photo_only") / "scene"
+    subprocess.run([sys.executable, "-m", "rg_core.cli", "synth", str(out), "--views", "12", "--size", "160x120",
+                    "--seed", "714", "--objects", "3", "--quiet"], check=True, capture_output=True)
+    shutil.rmtree(out / "depth")
+    for name in ("transforms_train.json", "transforms_test.json"):
+        d = json.loads((out / name).read_text())
+        for f in d["frames"]:
+            f.pop("depth_file_path", None)
+        (out / name).write_text(json.dumps(d))
+    pts, cols = read_ply(out / "points3d.ply")
+    sel = np.random.default_rng(0).choice(len(pts), min(1500, len(pts)), replace=False)
+    write_ply(out / "points3d.ply", pts[sel], cols[sel])
+    return out
+
+
+def test_a_scene_without_depth_maps_by_the_photo_fit_and_grounds(photo_scene, tmp_path):
+    from rg_core.config import FieldConfig, RGConfig
+    from rg_core.grounding.build import build_grounder
+    from rg_core.map.run import build_map
+    from rg_core.map.store import load_map, save_map
+
+    sc = read_scene(photo_scene, test_every=6)
+    assert not sc.has_depth()
+    mc = MapConfig(width=WIDTH, final_iters=0)
+    mapper, built = build_map(sc, mc, dataclasses.replace(CFG, iters=160), progress=False)
+    assert built["kind"] == "photo" and built["photo"]["steps"] == 160
+    assert len(mapper.keyframes) == len(sc.train)
+    assert all(float((kf.depth > 0).float().mean()) > 0.5 for kf in mapper.keyframes)   # rendered depth
+    back = load_map(save_map(mapper, tmp_path / "photo.rgmap"))
+    assert len(back.gaussians) == len(mapper.gaussians) and len(back.keyframes) == len(mapper.keyframes)
+    cfg = RGConfig(map=mc, photo=dataclasses.replace(CFG, iters=160), field=FieldConfig(steps=150))
+    g, report = build_grounder(sc, cfg, supervision="oracle", mapper=mapper)
+    q = sc.queries[0]
+    obj = next(o for o in sc.objects if o.id == q.object_id)
+    res = g.ground(q.explicit)
+    assert res.success, res.message
+    centre = (np.asarray(res.objects[0].aabb_min) + np.asarray(res.objects[0].aabb_max)) / 2
+    lo, hi = np.asarray(obj.aabb_min) - 0.05, np.asarray(obj.aabb_max) + 0.05
+    assert ((centre >= lo) & (centre <= hi)).all(), (q.explicit, centre, obj.aabb_min, obj.aabb_max)
+
+
+def test_a_scene_with_depth_on_some_frames_only_is_refused(photo_scene, tmp_path):
+    from rg_core.io.images import SceneError
+    from rg_core.map.run import build_map
+
+    sc = read_scene(photo_scene, test_every=6)
+    sc.train[0].depth_path = tmp_path / "0000.png"   # one frame claims a depth image
+    with pytest.raises(SceneError, match="no depth images"):
+        build_map(sc, MapConfig(width=WIDTH), CFG, progress=False)

@@ -18,7 +18,8 @@ def cmd_map(args, cfg) -> dict:
         from ..models import make_perception
 
         generator, embedder = make_perception(preset, cfg.models)
-    mapper, report = map_scene(args.scene, cfg.map, progress=not args.quiet, bag_options=_bag_options(args))
+    mapper, report = map_scene(args.scene, cfg.map, progress=not args.quiet, bag_options=_bag_options(args),
+                               photo=cfg.photo)
     if args.supervise:
         from ..perception.supervision import supervise_map
 

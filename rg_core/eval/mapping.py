@@ -7,12 +7,12 @@ import time
 import numpy as np
 import torch
 
-from ..config import MapConfig
+from ..config import MapConfig, PhotoMapConfig
 from ..io.captures import read_scene
 from ..io.scene import Frame
 from ..map.frames import prepare_frame
 from ..map.mapper import Mapper
-from ..map.run import stream_frames
+from ..map.run import build_map
 from ..util import peak_rss_mb
 
 
@@ -33,6 +33,18 @@ def evaluate_views(mapper: Mapper, frames: list[Frame]) -> dict:
     """
     rows = []
     for f in frames:
+        if f.depth_path is None:   # a photo-only scene: colour only
+            from ..map.photo_fit import photo_view
+
+            v = photo_view(f, mapper.cfg.width)
+            h, w = v.rgb.shape[:2]
+            with torch.no_grad():
+                out = mapper.render(v.K, v.cam_to_world, w, h, background=True)
+            nan = float("nan")
+            rows.append({"psnr": psnr(out.channels.numpy(), v.rgb.numpy()), "psnr_valid_depth": nan, "depth_med": nan,
+                         "depth_mean": nan, "coverage": float((out.alpha.numpy() > 0.5).mean()),
+                         "coverage_valid_depth": nan})
+            continue
         fr = prepare_frame(f.load_rgb(), f.load_depth(), f.intrinsics.K, f.cam_to_world, f.stamp, mapper.cfg.width)
         h, w = fr.depth.shape
         with torch.no_grad():
@@ -47,25 +59,29 @@ def evaluate_views(mapper: Mapper, frames: list[Frame]) -> dict:
                      "coverage": float((alpha > 0.5).mean()), "coverage_valid_depth": float(sel.sum() / max(valid.sum(), 1))})
     if not rows:
         return {"views": 0}
-    mean = lambda k: float(np.nanmean([r[k] for r in rows]))  # noqa: E731
+
+    def mean(k, f=np.nanmean):   # NaN where no view has the figure (no depth: a photo-only scene)
+        vals = np.array([r[k] for r in rows], float)
+        return float(f(vals)) if np.isfinite(vals).any() else float("nan")
+
     return {"views": len(rows), "psnr": round(mean("psnr"), 3), "psnr_valid_depth": round(mean("psnr_valid_depth"), 3),
-            "depth_abs_error_median_m": round(float(np.nanmedian([r["depth_med"] for r in rows])), 5),
+            "depth_abs_error_median_m": round(mean("depth_med", np.nanmedian), 5),
             "depth_abs_error_mean_m": round(mean("depth_mean"), 5), "coverage": round(mean("coverage"), 4),
             "coverage_valid_depth": round(mean("coverage_valid_depth"), 4)}
 
 
-def map_scene(scene_dir, cfg: MapConfig, progress: bool = True, bag_options=None) -> tuple[Mapper, dict]:
-    """Map the training frames of a scene (folder or ROS 2 bag) and evaluate on its test frames."""
+def map_scene(scene_dir, cfg: MapConfig, progress: bool = True, bag_options=None,
+              photo: PhotoMapConfig | None = None) -> tuple[Mapper, dict]:
+    """Map the training frames of a scene (folder or ROS 2 bag; without depth images: the
+    photo-only fit, `photo`) and evaluate on its test frames."""
     scene = read_scene(scene_dir, test_every=8, bag_options=bag_options)
-    scene.require_depth()   # photo-only scenes: a clear error before any work
-    mapper = Mapper(cfg)
-    seconds = stream_frames(mapper, scene.train, progress)
-    seconds += mapper.refine(cfg.final_iters)
+    mapper, built = build_map(scene, cfg, photo, progress)
+    seconds = built["seconds"]
     t = time.perf_counter()
     quality = evaluate_views(mapper, scene.test)
     report = {**mapper.stats(), "seconds_total": round(seconds, 3), "seconds_eval": round(time.perf_counter() - t, 3),
               "test": quality, "peak_rss_mb": round(peak_rss_mb(), 1), "scene": str(scene_dir),
-              "train_frames": len(scene.train), "test_frames": len(scene.test)}
+              "train_frames": len(scene.train), "test_frames": len(scene.test), "built": built}
     if getattr(scene, "info", None):   # a bag: topics used, frames dropped (TF missing, ...) per reason
         report["bag"] = scene.info
     return mapper, report

@@ -8,7 +8,7 @@ import time
 from ..config import RGConfig
 from ..field import FeatureField
 from ..map.mapper import Mapper
-from ..map.run import stream_frames
+from ..map.run import build_map
 from .pipeline import Grounder
 
 log = logging.getLogger(__name__)
@@ -50,13 +50,9 @@ def build_grounder(scene, cfg: RGConfig, supervision: str = "default", field_sec
 
     report: dict = {}
     t = time.perf_counter()
-    if mapper is None:
-        if hasattr(scene, "require_depth"):
-            scene.require_depth()   # photo-only scenes: a clear error before any work
-        mapper = Mapper(cfg.map)
-        stream_frames(mapper, scene.train, progress=progress)
-        mapper.refine(cfg.map.final_iters)
-        report["map"] = mapper.stats()
+    if mapper is None:   # RGB-D frames, or the photo-only fit for a scene without depth images
+        mapper, built = build_map(scene, cfg.map, cfg.photo, progress)
+        report["map"] = {**mapper.stats(), "built": built}
     report["seconds_map"] = round(time.perf_counter() - t, 3)
     from ..models import make_text_encoder
 

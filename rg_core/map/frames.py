@@ -71,12 +71,17 @@ def downscale_depth(depth: np.ndarray, w: int, h: int, max_std: float = 0.02) ->
     return np.where(ok & (var <= max_std * max_std), mean, 0.0).astype(np.float32)
 
 
+def working_size(W: int, H: int, width: int) -> tuple[int, int]:
+    """(w, h) of an image W x H at the working width (never upsampled, aspect kept)."""
+    w = min(width, W)
+    return w, max(1, int(round(H * w / W)))
+
+
 def prepare_frame(rgb, depth, K, cam_to_world, stamp, width: int) -> PreparedFrame:
     """Validate and resize to `width` pixels wide (aspect kept); depth with `downscale_depth`."""
     check_frame(rgb, depth, K, cam_to_world, stamp)
     H, W = depth.shape
-    w = min(width, W)
-    h = max(1, int(round(H * w / W)))
+    w, h = working_size(W, H, width)
     sx, sy = w / W, h / H
     depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
     if (w, h) != (W, H):

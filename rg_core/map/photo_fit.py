@@ -274,3 +274,64 @@ def rendered_depth(g: GaussianModel, v: PhotoView, map_cfg: MapConfig, min_alpha
     cam = Camera.from_numpy(v.K, v.cam_to_world, w, h, map_cfg.near, map_cfg.far)
     out = rasterize(g.means, g.scales, g.quats, g.opacities, g.colors, cam, antialiased=map_cfg.antialiased)
     return torch.where(out.alpha >= min_alpha, out.depth, torch.zeros_like(out.depth))
+
+
+def photo_view(frame, width: int) -> PhotoView:
+    """A scene Frame (io/scene.py) as a PhotoView at the working width (colour area-averaged, K
+    rescaled): what the fit and the map's keyframes use."""
+    import cv2
+
+    from ..geometry.conventions import check_rigid, scale_intrinsics
+    from .frames import working_size
+
+    rgb = frame.load_rgb()
+    H, W = rgb.shape[:2]
+    w, h = working_size(W, H, width)
+    if (w, h) != (W, H):
+        rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
+    c2w = np.asarray(frame.cam_to_world, np.float64)
+    check_rigid(c2w, f"frame {frame.index} cam_to_world")
+    return PhotoView(torch.from_numpy(rgb.astype(np.float32) / 255.0), scale_intrinsics(frame.intrinsics.K, w / W, h / H),
+                     c2w, int(frame.index), float(frame.stamp))
+
+
+def photo_mapper(frames, map_cfg: MapConfig | None = None, cfg: PhotoMapConfig | None = None, points=None,
+                 progress: bool = True):
+    """(Mapper, PhotoFit): the fit over `frames` (io Frames without depth), as a Mapper whose
+    keyframes are those views (evenly thinned to map.max_keyframes) with the fit's rendered depth,
+    so supervision, the field, grounding and saving run unchanged. `points`: io.scene.SparsePoints
+    or None (random initialisation)."""
+    from .keyframes import Keyframe
+    from .mapper import Mapper
+    from .gaussians import ResizableAdam
+
+    map_cfg = map_cfg or MapConfig()
+    views = [photo_view(f, map_cfg.width) for f in frames]
+    for i, v in enumerate(views):   # a keyframe's index is its position in the input stream, as the Mapper's
+        v.index = i
+    xyz = rgb = None
+    if points is not None and len(points.xyz) >= 4:
+        xyz, rgb = points.xyz, np.asarray(points.rgb, np.float64) / 255.0
+    fit = PhotoFitter(views, cfg, map_cfg, xyz, rgb).fit(progress=progress)
+    m = Mapper(map_cfg)
+    m.gaussians = fit.gaussians
+    m.optim = ResizableAdam(m.gaussians, m.optim.lrs)   # refinement and the node continue from here
+    keep = views
+    if map_cfg.max_keyframes and len(views) > map_cfg.max_keyframes:
+        keep = [views[i] for i in np.linspace(0, len(views) - 1, map_cfg.max_keyframes).round().astype(int)]
+    m.keyframes = [Keyframe(v.index, v.stamp, v.cam_to_world, v.K, v.rgb, rendered_depth(fit.gaussians, v, map_cfg))
+                   for v in keep]
+    m.frames_seen = len(frames)
+    m.last_stamp = max(v.stamp for v in views)
+    m.totals["added"] = len(fit.gaussians)
+    m.totals["split"], m.totals["pruned"] = fit.totals["split"], fit.totals["pruned"]
+    m.seconds["optimise"] = fit.seconds
+    return m, fit
+
+
+def fit_summary(fit: PhotoFit) -> dict:
+    """What a report says of a fit: steps, why it stopped, seconds, Gaussians, density control and
+    the held-out PSNR against time (the curve `rg report` plots)."""
+    return {"steps": fit.steps, "stopped": fit.stopped, "seconds": round(fit.seconds, 3),
+            "gaussians": len(fit.gaussians), **fit.totals,
+            "heldout_psnr": [[h[0], round(h[1], 3), round(h[2], 3), h[3]] for h in fit.history]}

@@ -17,3 +17,21 @@ def stream_frames(mapper: Mapper, frames, progress: bool = True, desc: str = "ma
         mapper.add_frame(f.load_rgb(), f.load_depth(), f.intrinsics.K, f.cam_to_world, f.stamp)
         bar.set_postfix(kf=len(mapper.keyframes), g=len(mapper.gaussians))
     return time.perf_counter() - t
+
+
+def build_map(scene, map_cfg, photo_cfg=None, progress: bool = True) -> tuple[Mapper, dict]:
+    """A scene's training frames as a map, and how it was made: RGB-D frames streamed then refined
+    (final_iters), or, when no training frame has a depth image, the photo-only fit
+    (photo_fit.py: standard 3DGS from the sparse points, then rendered depth). A scene where only
+    some frames have depth is refused (SceneError from require_depth)."""
+    t = time.perf_counter()
+    if scene.has_depth() or any(f.depth_path is not None for f in scene.train):
+        scene.require_depth()
+        mapper = Mapper(map_cfg)
+        stream_frames(mapper, scene.train, progress)
+        mapper.refine(map_cfg.final_iters)
+        return mapper, {"kind": "rgbd", "seconds": round(time.perf_counter() - t, 3)}
+    from .photo_fit import fit_summary, photo_mapper
+
+    mapper, fit = photo_mapper(scene.train, map_cfg, photo_cfg, scene.load_points(), progress)
+    return mapper, {"kind": "photo", "seconds": round(time.perf_counter() - t, 3), "photo": fit_summary(fit)}
