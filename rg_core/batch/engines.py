@@ -125,7 +125,9 @@ def _run_ray(fn_ref: str, tasks: list, on_record, workers: int, address: str | N
         kw = dict(include_dashboard=False, log_to_driver=False, configure_logging=False, **ray_init)
         try:
             if address is None:
-                ray.init(num_cpus=workers * max(1, threads), **kw)
+                # Ray runs task workers at nice 15; here the scenes are the job, and on a shared machine
+                # they would lose the CPU to anything else (a cluster's nodes keep their own setting)
+                ray.init(num_cpus=workers * max(1, threads), _system_config={"worker_niceness": 0}, **kw)
             else:
                 ray.init(address=address, **kw)
         except ConnectionError as exc:

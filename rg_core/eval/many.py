@@ -8,6 +8,7 @@ scene), and seconds per scene. The pool keeps a few bytes per answer and per sce
 reports, so a driver's memory stays flat however many scenes it reads."""
 from __future__ import annotations
 
+import os
 from array import array
 from pathlib import Path
 
@@ -60,8 +61,8 @@ def expand(paths: list[str]) -> list[Path]:
         else:
             out.append(p)
     seen, unique = set(), []
-    for p in out:
-        key = str(p.resolve())
+    for p in out:   # the same path twice; a symlink under another name is another scene (its own record)
+        key = os.path.abspath(p)
         if key not in seen:
             seen.add(key)
             unique.append(p)
