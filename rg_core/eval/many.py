@@ -9,6 +9,7 @@ reports, so a driver's memory stays flat however many scenes it reads."""
 from __future__ import annotations
 
 import os
+import re
 from array import array
 from pathlib import Path
 
@@ -170,7 +171,9 @@ def table_row(name: str, record: dict, fig: dict | None) -> str:
     """One scene's line of the table: its figures, or its error."""
     head = f"{name[:24]:<24} {record.get('status', 'failed'):<7}"
     if fig is None:
-        return f"{head} {' '.join(str(record.get('error') or 'failed').split())[:110]}"
+        err = " ".join(str(record.get("error") or "failed").split())
+        err = re.sub(r"\S*/" + re.escape(name) + r"(?=[:/ ])", name, err)   # a long path would hide the reason
+        return f"{head} {err[:110]}"
     cells = "".join(_num(fig.get(k, {}).get("miou"), 10) + _num(fig.get(k, {}).get("localization"), 6) + " "
                     for k in KINDS)
     a = fig.get("all", {})
