@@ -18,7 +18,7 @@ from rg_core.io.captures import read_scene
 from rg_core.io.ply import read_ply
 from rg_core.map.frames import prepare_frame
 from rg_core.map.gaussians import PARAMS
-from rg_core.map.photo_fit import PhotoFitter, PhotoView, gaussians_from_points, rendered_depth, ssim
+from rg_core.map.photo_fit import PhotoFitter, PhotoView, gaussians_from_points, initial_points, rendered_depth, ssim
 
 WIDTH = 80
 
@@ -93,6 +93,33 @@ def test_random_initialisation_without_points_learns(scene):
     f = PhotoFitter(train, cfg, MapConfig(width=WIDTH))
     fit = f.fit(progress=False)
     assert fit.history[-1][2] > fit.history[0][2] + 1.0, fit.history
+
+
+def test_random_initial_points_fill_the_frusta_seeded(scene):
+    """View uniform, pixel uniform, depth uniform in inverse depth; the same seed the same points.
+    Two views looking opposite ways (their frusta never meet) of different sizes and focal lengths."""
+    from rg_core.geometry.conventions import look_at, project
+
+    K1 = np.array([[40.0, 0, 39.5], [0, 40.0, 29.5], [0, 0, 1]])
+    K2 = np.array([[25.0, 0, 19.5], [0, 25.0, 14.5], [0, 0, 1]])
+    views = [PhotoView(torch.zeros(60, 80, 3), K1, look_at(np.zeros(3), np.array([0.0, 1, 0]))),
+             PhotoView(torch.zeros(30, 40, 3), K2, look_at(np.zeros(3), np.array([0.0, -1, 0])))]
+    near, far, n = 0.1, 5.0, 6000
+    pts, cols = initial_points(views, n, near, far, np.random.default_rng(3))
+    again, _ = initial_points(views, n, near, far, np.random.default_rng(3))
+    other, _ = initial_points(views, n, near, far, np.random.default_rng(4))
+    np.testing.assert_array_equal(pts, again)
+    assert not np.allclose(pts, other) and pts.shape == (n, 3) and (cols == 0.5).all()
+    first = pts[:, 1] > 0                                          # in front of view 0, behind view 1
+    assert abs(first.mean() - 0.5) < 0.03, first.mean()
+    for v, sel in ((views[0], first), (views[1], ~first)):
+        h, w = v.rgb.shape[:2]
+        uv, z = project(pts[sel], v.K, v.cam_to_world)
+        assert (z >= near * (1 - 1e-9)).all() and (z <= far * (1 + 1e-9)).all()
+        assert (uv >= -1e-6).all() and (uv[:, 0] <= w + 1e-6).all() and (uv[:, 1] <= h + 1e-6).all()
+        for x, lo, hi in ((uv[:, 0], 0, w), (uv[:, 1], 0, h), (1 / z, 1 / far, 1 / near)):   # uniform: KS distance
+            x = np.sort((x - lo) / (hi - lo))
+            assert np.abs(x - (np.arange(len(x)) + 0.5) / len(x)).max() < 0.04
 
 
 def test_rendered_depth_is_the_surface_where_opaque(scene):

@@ -71,6 +71,14 @@ def downscale_depth(depth: np.ndarray, w: int, h: int, max_std: float = 0.02) ->
     return np.where(ok & (var <= max_std * max_std), mean, 0.0).astype(np.float32)
 
 
+def map_camera(cfg, K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int):
+    """The rasterizer's Camera for a map's view: K and camera-to-world (numpy, OpenCV axes) with the
+    map's clip planes (MapConfig near, far). What the Mapper and the photo fit both render with."""
+    from ..render.camera import Camera
+
+    return Camera.from_numpy(K, cam_to_world, width, height, cfg.near, cfg.far)
+
+
 def working_size(W: int, H: int, width: int) -> tuple[int, int]:
     """(w, h) of an image W x H at the working width (never upsampled, aspect kept)."""
     w = min(width, W)

@@ -17,7 +17,7 @@ import torch
 
 from ..config import MapConfig
 from ..render import EPS2D, Camera, RenderOutput, rasterize
-from .frames import PreparedFrame, prepare_frame
+from .frames import PreparedFrame, map_camera, prepare_frame
 from .gaussians import GaussianModel, ResizableAdam
 from .keyframes import Keyframe, keyframe_reason, most_redundant, same_view
 from .removal import eviction_order, protected_box, prune_keep
@@ -61,11 +61,12 @@ class Mapper:
         self._rng = torch.Generator().manual_seed(self.cfg.seed)
         self.supervision = None  # perception.supervision.SupervisionSet, once computed
         self.taught = TaughtSet()  # objects people named (grounding/teach.py); eviction keeps them
+        self.built: dict = {}  # how the map was made (map.run.build_map: kind, world scale, photo fit), saved with it
 
     # ------------------------------------------------------------------------------ rendering
 
     def camera(self, K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int) -> Camera:
-        return Camera.from_numpy(K, cam_to_world, width, height, self.cfg.near, self.cfg.far)
+        return map_camera(self.cfg, K, cam_to_world, width, height)
 
     def render(self, K: np.ndarray, cam_to_world: np.ndarray, width: int, height: int,
                subset: torch.Tensor | None = None, return_ids: bool = False, background: bool = False) -> RenderOutput:

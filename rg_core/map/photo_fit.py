@@ -26,6 +26,7 @@ import torch
 
 from ..config import MapConfig, PhotoMapConfig
 from ..render.rasterize import rasterize
+from .frames import map_camera
 from .gaussians import PARAMS, GaussianModel, ResizableAdam
 
 
@@ -51,7 +52,6 @@ class PhotoFit:
     steps: int = 0
     seconds: float = 0.0
     totals: dict = field(default_factory=dict)
-    extent: float = 1.0
 
 
 def scene_extent(views: list[PhotoView]) -> float:
@@ -64,17 +64,18 @@ def scene_extent(views: list[PhotoView]) -> float:
 def initial_points(views: list[PhotoView], n: int, near: float, far: float,
                    rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """(points [n, 3], colours [n, 3] in [0, 1]) drawn uniformly in the views' frusta between near
-    and far (depth uniform in inverse depth, so near space is not starved), coloured grey."""
-    pts = []
-    for i in range(n):
-        v = views[int(rng.integers(len(views)))]
-        h, w = v.rgb.shape[:2]
-        u, vv = rng.uniform(0, w), rng.uniform(0, h)
-        z = 1.0 / rng.uniform(1.0 / far, 1.0 / near)
-        K = v.K
-        x = np.array([(u - K[0, 2]) / K[0, 0] * z, (vv - K[1, 2]) / K[1, 1] * z, z, 1.0])
-        pts.append((v.cam_to_world @ x)[:3])
-    return np.asarray(pts, np.float64), np.full((n, 3), 0.5)
+    and far: per point a view chosen uniformly, a pixel uniform in it and a depth uniform in inverse
+    depth (so near space is not starved), coloured grey. Deterministic for a seeded `rng`."""
+    which = rng.integers(len(views), size=n)                                  # [n] view of each point
+    size = np.array([v.rgb.shape[1::-1] for v in views], np.float64)[which]   # [n, 2] (w, h)
+    uv = rng.uniform(0.0, 1.0, (n, 2)) * size                                 # [n, 2] pixel
+    z = 1.0 / rng.uniform(1.0 / far, 1.0 / near, n)                           # [n]
+    K = np.stack([v.K for v in views])[which]                                 # [n, 3, 3]
+    c2w = np.stack([v.cam_to_world for v in views])[which]                    # [n, 4, 4]
+    xy = (uv - K[:, :2, 2]) / K[:, [0, 1], [0, 1]] * z[:, None]               # [n, 2] camera x, y
+    cam = np.concatenate([xy, z[:, None]], 1)                                 # [n, 3]
+    pts = np.einsum("nij,nj->ni", c2w[:, :3, :3], cam) + c2w[:, :3, 3]
+    return pts.astype(np.float64), np.full((n, 3), 0.5)
 
 
 def gaussians_from_points(points: np.ndarray, colors: np.ndarray, init_opacity: float = 0.1) -> GaussianModel:
@@ -130,9 +131,7 @@ class PhotoFitter:
 
     def _render(self, v: PhotoView, params: dict):
         h, w = v.rgb.shape[:2]
-        from ..render.camera import Camera
-
-        cam = Camera.from_numpy(v.K, v.cam_to_world, w, h, self.map_cfg.near, self.map_cfg.far)
+        cam = map_camera(self.map_cfg, v.K, v.cam_to_world, w, h)
         out = rasterize(params["means"], torch.exp(params["log_scales"]), params["quats"],
                         torch.sigmoid(params["opacity_logits"]), params["colors"], cam,
                         antialiased=self.map_cfg.antialiased)
@@ -164,7 +163,7 @@ class PhotoFitter:
             self._seen[seen] += 1
         return float(loss.detach())
 
-    def _densify_and_prune(self, it: int, densifying: bool) -> None:
+    def _densify_and_prune(self, densifying: bool) -> None:
         c, g = self.cfg, self.g
         if densifying:
             mean = self._grad / self._seen.clamp(min=1)
@@ -236,7 +235,7 @@ class PhotoFitter:
                 raise FloatingPointError(f"photo map: loss is {loss} at step {it} (diverged)")
             densifying = c.densify_from <= it <= until
             if it % c.densify_every == 0 and it >= c.densify_from:
-                self._densify_and_prune(it, densifying)
+                self._densify_and_prune(densifying)
             if densifying and c.reset_opacity_every and it % c.reset_opacity_every == 0:
                 self.g.opacity_logits = torch.minimum(self.g.opacity_logits, torch.full_like(self.g.opacity_logits,
                                                                                           math.log(0.01 / 0.99)))
@@ -251,7 +250,7 @@ class PhotoFitter:
                     break
             bar.update(1)
         bar.close()
-        return PhotoFit(self.g, hist, stopped, it, time.perf_counter() - t0, dict(self.totals), self.extent)
+        return PhotoFit(self.g, hist, stopped, it, time.perf_counter() - t0, dict(self.totals))
 
     def _converged(self, hist: list, until: int) -> bool:
         c = self.cfg
@@ -268,10 +267,8 @@ class PhotoFitter:
 def rendered_depth(g: GaussianModel, v: PhotoView, map_cfg: MapConfig, min_alpha: float = 0.5) -> torch.Tensor:
     """[H, W] metres: the fitted map's expected depth where it is opaque (alpha >= min_alpha), else
     0 (invalid), what the supervision's physical scales then read as the sensor's depth."""
-    from ..render.camera import Camera
-
     h, w = v.rgb.shape[:2]
-    cam = Camera.from_numpy(v.K, v.cam_to_world, w, h, map_cfg.near, map_cfg.far)
+    cam = map_camera(map_cfg, v.K, v.cam_to_world, w, h)
     out = rasterize(g.means, g.scales, g.quats, g.opacities, g.colors, cam, antialiased=map_cfg.antialiased)
     return torch.where(out.alpha >= min_alpha, out.depth, torch.zeros_like(out.depth))
 
