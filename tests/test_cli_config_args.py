@@ -11,9 +11,9 @@ import rg_core.cli as cli
 from rg_core.cli import config_args, evaluation, grounding, mapping, reporting, synthesis
 from rg_core.config import RGConfig, config_to_dict
 
-SECTIONS = {"synth": {"synth"}, "map": {"map", "field", "models"}, "ground": {"ground", "reason", "models"},
-            "graph": {"ground", "reason", "models"}, "eval": {"map", "field", "ground", "reason", "models"},
-            "report": {"map", "field", "ground", "reason", "models"}, "models": {"models"},
+SECTIONS = {"synth": {"synth"}, "map": {"map", "photo", "field", "models"}, "ground": {"ground", "reason", "models"},
+            "graph": {"ground", "reason", "models"}, "eval": {"map", "photo", "field", "ground", "reason", "models"},
+            "report": {"map", "photo", "field", "ground", "reason", "models"}, "models": {"models"},
             "demo": {"demo", "synth", "map", "field", "ground", "reason", "models"}}
 COMMANDS = {"synth": (synthesis, "cmd_synth"), "map": (mapping, "cmd_map"), "ground": (grounding, "cmd_ground"),
             "eval": (evaluation, "cmd_eval"), "demo": (reporting, "cmd_demo")}

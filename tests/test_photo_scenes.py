@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
+from rg_core.config import PhotoMapConfig
 from rg_core.geometry.conventions import project
 from rg_core.geometry.rotations import rot_to_quat
 from rg_core.io.captures import read_scene, scene_kind
@@ -20,6 +21,7 @@ from rg_core.io.images import SceneError, read_rgb, write_rgb
 from rg_core.io.scene import NO_DEPTH, read_reasoninggd
 
 pycolmap = pytest.importorskip("pycolmap")
+AS_IS = PhotoMapConfig(world_scale=1.0)   # the readers' own units (read_scene's scale rule: test_world_scale.py)
 
 
 # --------------------------------------------------------------------------- writers (the formats' definitions)
@@ -77,7 +79,7 @@ def assert_same_frames(got, want):
 def test_colmap_round_trip_gives_back_the_poses(synth_scene, tmp_path, binary):
     root = scene_as_colmap(synth_scene, tmp_path / "c", binary)
     assert scene_kind(root) == "colmap"
-    s = read_scene(root)
+    s = read_scene(root, photo=AS_IS)
     assert s.kind == "colmap" and len(s.frames) == len(synth_scene.frames)
     assert_same_frames(s.frames, synth_scene.frames)
     a, b = s.frames[3].intrinsics, synth_scene.frames[3].intrinsics
@@ -101,7 +103,7 @@ def test_colmap_pose_convention_on_known_values(tmp_path):
     R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])   # camera from world
     colmap_text(root / "sparse" / "0", [(7, "SIMPLE_PINHOLE", 60, 40, [50.0, 30.5, 20.5])],
                 [(3, R, np.array([0.0, 0.0, 2.0]), 7, "a.png")])
-    f = read_scene(root).frames[0]
+    f = read_scene(root, photo=AS_IS).frames[0]
     np.testing.assert_allclose(f.cam_to_world[:3, 3], [0.0, 0.0, -2.0], atol=1e-12)
     np.testing.assert_allclose(f.cam_to_world[:3, :3], R.T, atol=1e-12)
     assert (f.intrinsics.fx, f.intrinsics.fy, f.intrinsics.cx, f.intrinsics.cy) == (50.0, 50.0, 30.0, 20.0)
@@ -150,7 +152,7 @@ def test_each_camera_model_lands_on_the_pinhole_projection(tmp_path, model):
         write_rgb(root / "images" / f"{i}.png", np.repeat((255 * img).astype(np.uint8)[..., None], 3, 2))
     colmap_text(root / "sparse" / "0", [(1, model, W, H, params)],
                 [(i + 1, np.eye(3), np.zeros(3), 1, f"{i}.png") for i in range(len(xy))])
-    s = read_scene(root)
+    s = read_scene(root, photo=AS_IS)
     assert (s.frames[0].undistort is None) == (model in ("SIMPLE_PINHOLE", "PINHOLE"))
     for f, (x, y) in zip(s.frames, xy):
         K = f.intrinsics.K
@@ -198,7 +200,7 @@ def test_downscaled_photos_scale_the_camera(synth_scene, tmp_path):
     root = scene_as_colmap(synth_scene, tmp_path / "c")
     for p in (root / "images").iterdir():   # half-size copies of the photos COLMAP saw
         write_rgb(p, cv2.resize(read_rgb(p), (80, 60), interpolation=cv2.INTER_AREA))
-    f = read_scene(root).frames[0]
+    f = read_scene(root, photo=AS_IS).frames[0]
     b = synth_scene.frames[0].intrinsics
     assert (f.intrinsics.width, f.intrinsics.height) == (80, 60) and f.load_rgb().shape == (60, 80, 3)
     assert f.intrinsics.fx == pytest.approx(b.fx / 2) and f.intrinsics.cx == pytest.approx((b.cx + 0.5) / 2 - 0.5)
@@ -224,7 +226,7 @@ def scene_as_nerfstudio(scene, root, **extra):
 def test_nerfstudio_round_trip_and_axes(synth_scene, tmp_path):
     root = scene_as_nerfstudio(synth_scene, tmp_path / "n")
     assert scene_kind(root) == "nerfstudio"
-    s = read_scene(root)
+    s = read_scene(root, photo=AS_IS)
     assert s.kind == "nerfstudio"
     assert_same_frames(s.frames, synth_scene.frames)
     np.testing.assert_allclose(s.frames[0].intrinsics.K, synth_scene.frames[0].intrinsics.K, atol=1e-9)
@@ -233,7 +235,7 @@ def test_nerfstudio_round_trip_and_axes(synth_scene, tmp_path):
     data = json.loads((root / "transforms.json").read_text())
     data["frames"][0]["transform_matrix"] = np.eye(4).tolist()
     (root / "transforms.json").write_text(json.dumps(data))
-    f = next(f for f in read_scene(root).frames if f.image_path.name == data["frames"][0]["file_path"][7:])
+    f = next(f for f in read_scene(root, photo=AS_IS).frames if f.image_path.name == data["frames"][0]["file_path"][7:])
     np.testing.assert_allclose(f.cam_to_world[:3, :3], np.diag([1.0, -1.0, -1.0]))
 
 
@@ -243,24 +245,24 @@ def test_nerfstudio_split_points_and_errors(synth_scene, tmp_path):
     root = scene_as_nerfstudio(synth_scene, tmp_path / "n", test_filenames=names[1:3], applied_transform=A)
     colmap_text(root / "colmap" / "sparse" / "0", [(1, "PINHOLE", 160, 120, [100, 100, 80, 60])], [],
                 [(1, (1.0, 2.0, 3.0), (1, 2, 3))])
-    s = read_scene(root)
+    s = read_scene(root, photo=AS_IS)
     assert [f.image_path.name for f in s.test] == [n[7:] for n in names[1:3]] and len(s.train) == len(names) - 2
     np.testing.assert_allclose(s.load_points().xyz, [[1.5, 3.0, -2.0]])   # moved into the poses' world
     data = json.loads((root / "transforms.json").read_text())
     data["frames"][4]["file_path"] = "images/missing.png"
     (root / "transforms.json").write_text(json.dumps(data))
     with pytest.raises(SceneError, match=r"images/missing.png: image not found \(file_path of frames\[4\]"):
-        read_scene(root)
+        read_scene(root, photo=AS_IS)
     data["frames"][4]["file_path"] = names[0]
     data["camera_model"] = "OPENCV_FISHEYE"
     (root / "transforms.json").write_text(json.dumps(data))
     with pytest.raises(SceneError, match="camera_model OPENCV_FISHEYE is not supported; supported: SIMPLE_PINHOLE"):
-        read_scene(root)
+        read_scene(root, photo=AS_IS)
 
 
 def test_nerfstudio_distorted_frames_undistort_at_load(synth_scene, tmp_path):
     root = scene_as_nerfstudio(synth_scene, tmp_path / "n", k1=-0.1, p1=0.002)
-    f = read_scene(root).frames[0]
+    f = read_scene(root, photo=AS_IS).frames[0]
     assert f.undistort is not None and f.load_rgb().shape == (120, 160, 3)
     np.testing.assert_allclose(f.undistort.dist, [-0.1, 0.0, 0.002, 0.0, 0.0])
 
@@ -285,7 +287,7 @@ def scene_as_llff(scene, root, near_far=(0.2, 5.0)):
 def test_llff_round_trip_and_axes(synth_scene, tmp_path):
     root = scene_as_llff(synth_scene, tmp_path / "l")
     assert scene_kind(root) == "llff"
-    s = read_scene(root)
+    s = read_scene(root, photo=AS_IS)
     assert s.kind == "llff" and s.labels is None and [f.index for f in s.test] == [0, 8]
     assert_same_frames(s.frames, synth_scene.frames)
     f, b = s.frames[0], synth_scene.frames[0]
@@ -301,7 +303,7 @@ def test_llff_downscaled_copies(synth_scene, tmp_path):
     (root / "images").rename(root / "images_4")   # 3D-OVS-style: only the downscaled copies
     for p in (root / "images_4").iterdir():
         write_rgb(p, cv2.resize(read_rgb(p), (40, 30), interpolation=cv2.INTER_AREA))
-    f = read_scene(root).frames[5]
+    f = read_scene(root, photo=AS_IS).frames[5]
     assert f.image_path.parent.name == "images_4" and f.load_rgb().shape == (30, 40, 3)
     assert f.intrinsics.fx == pytest.approx(synth_scene.frames[5].intrinsics.fx / 4) and f.intrinsics.cx == 19.5
     np.testing.assert_allclose(f.cam_to_world, synth_scene.frames[5].cam_to_world, atol=1e-6)
@@ -311,10 +313,10 @@ def test_llff_errors(synth_scene, tmp_path):
     root = scene_as_llff(synth_scene, tmp_path / "l")
     (root / "images" / "0003.png").unlink()
     with pytest.raises(SceneError, match=r"poses_bounds.npy: 16 poses, but .*images holds 15 images"):
-        read_scene(root)
+        read_scene(root, photo=AS_IS)
     np.save(root / "poses_bounds.npy", np.zeros((15, 15)))
     with pytest.raises(SceneError, match=r"expected a finite \[N, 17\] array"):
-        read_scene(root)
+        read_scene(root, photo=AS_IS)
 
 
 # --------------------------------------------------------------------------- scenes without depth

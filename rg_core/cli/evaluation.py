@@ -4,6 +4,7 @@ Ray, with their aggregate (many.py)."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -37,7 +38,13 @@ def eval_scene(args, cfg) -> dict:
             apply_reasoner(cfg.models.preset, cfg)
         except ModelMissingError as exc:
             print(f"rg eval: {exc}; implicit queries use reason.backend {cfg.reason.backend!r}", file=sys.stderr)
-    scene = read_scene(args.scene)
+    mapper = load_map(args.map) if args.map else None
+    photo = cfg.photo
+    if mapper is not None and not photo.world_scale:
+        # auto against a map: photos without depth take the map's world, the scale it recorded when
+        # it was built from them (io/world_scale.py), metres for any other map
+        photo = dataclasses.replace(photo, world_scale=float(mapper.built.get("world_scale", 1.0)))
+    scene = read_scene(args.scene, photo=photo)
     if args.queries:  # anyone's own explicit and implicit queries, in the scene's queries.json format
         from ..io.queries import read_queries
 
@@ -46,7 +53,6 @@ def eval_scene(args, cfg) -> dict:
         raise ValueError(f"{args.scene}: rg eval needs ground-truth objects and queries (a ReasoningGD scene with "
                          "objects.json and queries.json, or a BOP scene; --queries FILE gives queries) or "
                          "LERF-OVS / 3D-OVS labels (docs/scene-formats.md)")
-    mapper = load_map(args.map) if args.map else None
     if mapper is not None and args.supervision == "oracle":
         mapper.field = None  # a map's own field was trained on its own supervision
     field_seconds, as_is = args.field_seconds, False
@@ -118,5 +124,5 @@ def add_eval(sub) -> None:
     add_engine_args(p, "tasks at once on local Ray workers, --ray without an address (default: cores / --threads)",
                     threads=True)
     add_common(p)
-    add_sections(p, ("map", "field", "ground", "reason", "models"))
+    add_sections(p, ("map", "photo", "field", "ground", "reason", "models"))
     p.set_defaults(func=cmd_eval)

@@ -84,5 +84,5 @@ def add_map(sub) -> None:
               help="models of the supervision: offline, paper, paper_cpu (default: config models.preset)")
     _add_bag_args(p)
     add_common(p)
-    add_sections(p, ("map", "field", "models"))
+    add_sections(p, ("map", "photo", "field", "models"))
     p.set_defaults(func=cmd_map)

@@ -55,7 +55,7 @@ def add_report(sub) -> None:
     p.add_argument("--frames", type=floats, help="frame counts of the scaling, e.g. 25,50,100,200")
     p.add_argument("--sizes", help="image sizes of the scaling, e.g. 160x120,320x240,640x480")
     add_common(p)
-    add_sections(p, ("map", "field", "ground", "reason", "models"))
+    add_sections(p, ("map", "photo", "field", "ground", "reason", "models"))
     p.set_defaults(func=cmd_report)
 
 

@@ -157,3 +157,11 @@ class PhotoMapConfig:
     lr_opacity: float = 0.05
     lr_colors: float = 0.0025
     seed: int = 0
+    world_scale: Annotated[float, Interval(ge=0.0)] = 0.0
+    """COLMAP, LLFF and nerfstudio worlds without depth are defined only up to scale: on read their
+    poses, points and bounds are multiplied by this factor (0: auto, so that the scene's typical
+    viewing distance becomes `world_depth`; rg_core/io/world_scale.py). Scenes with depth keep theirs."""
+    world_depth: Annotated[float, Interval(gt=0.0)] = 0.6
+    """Metres the auto rule brings the median viewing distance to (the sparse points' median depth in
+    the views, else LLFF's bounds, else the cameras' spread): what the mapper's and grounder's
+    defaults suit (objects seen from 0.4-0.7 m)."""

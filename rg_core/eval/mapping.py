@@ -74,7 +74,7 @@ def map_scene(scene_dir, cfg: MapConfig, progress: bool = True, bag_options=None
               photo: PhotoMapConfig | None = None) -> tuple[Mapper, dict]:
     """Map the training frames of a scene (folder or ROS 2 bag; without depth images: the
     photo-only fit, `photo`) and evaluate on its test frames."""
-    scene = read_scene(scene_dir, test_every=8, bag_options=bag_options)
+    scene = read_scene(scene_dir, test_every=8, bag_options=bag_options, photo=photo)
     mapper, built = build_map(scene, cfg, photo, progress)
     seconds = built["seconds"]
     t = time.perf_counter()

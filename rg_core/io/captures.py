@@ -135,12 +135,26 @@ def scene_kind(root: str | Path) -> str | None:
     return None
 
 
-def read_scene(root: str | Path, test_every: int = 8, bag_options=None, bop_options=None) -> Scene:
+def read_scene(root: str | Path, test_every: int = 8, bag_options=None, bop_options=None, photo=None) -> Scene:
     """Read any supported scene: ReasoningGD layout, a real capture folder, a BOP scene folder
     (scene_camera.json + scene_gt.json; `bop_options` a bop.BopOptions, else every `test_every`-th
     image a test view), a YCB-Video sequence folder (classes.txt + NNNNNN-meta.mat), a ROS 2 bag (.mcap, .db3 or a rosbag2 folder; `bag_options` is a
     rosbag.BagOptions, default options when None), or photos with poses and no depth: LLFF /
-    3D-OVS (poses_bounds.npy), nerfstudio / LERF (transforms.json), a COLMAP model (sparse/0)."""
+    3D-OVS (poses_bounds.npy), nerfstudio / LERF (transforms.json), a COLMAP model (sparse/0).
+    Photos' worlds defined up to scale are brought to metres here, the one place
+    (world_scale.normalise_scale; `photo` a config.PhotoMapConfig for its world_scale and
+    world_depth, default auto)."""
+    from .world_scale import normalise_scale
+
+    scene = _read_any(root, test_every, bag_options, bop_options)
+    if photo is None:
+        from ..config import PhotoMapConfig
+
+        photo = PhotoMapConfig()
+    return normalise_scale(scene, photo.world_scale, photo.world_depth)
+
+
+def _read_any(root, test_every, bag_options, bop_options) -> Scene:
     from .bop import BopOptions, read_bop
     from .rosbag import read_bag
     from .scene import read_reasoninggd

@@ -164,6 +164,8 @@ class Scene:
     labels: object | None = None              # ovs_labels.BenchmarkLabels
     points: SparsePoints | None = None        # read with the poses (COLMAP)
     points_path: Path | None = None           # or a PLY beside them, read by load_points
+    world_scale: float = 1.0                  # poses and points were multiplied by it on read (world_scale.py)
+    world_rule: str = "metric"                # how that factor was chosen: metric, given, points, bounds, ...
 
     @property
     def frames(self) -> list[Frame]:

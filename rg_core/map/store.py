@@ -3,7 +3,8 @@
 Holds the Gaussians, the configuration and, per keyframe, pose, intrinsics, stamp and the
 working-resolution image (uint8) and depth (float32 m), which the feature and grounding stages use;
 since version 2 also the feature field (`mapper.field`: latents, mappers, scale transform, config),
-since version 3 what people taught it (`mapper.taught`, map/taught.py).
+since version 3 what people taught it (`mapper.taught`, map/taught.py); optionally how it was made
+(`mapper.built`: kind, world scale, the photo fit's curve; absent in older files, read as empty).
 """
 from __future__ import annotations
 
@@ -49,6 +50,8 @@ def save_map(mapper: Mapper, path: str | Path) -> Path:
         # The feature field (rg_core.field.FeatureField attaches itself as mapper.field); None until built.
         "field": mapper.field.state_dict() if getattr(mapper, "field", None) is not None else None,
         "taught": mapper.taught.state_dict(),
+        # How it was made (map.run.build_map): kind, the world's scale (io/world_scale.py), the photo fit's curve.
+        "built": dict(getattr(mapper, "built", {}) or {}),
     }
     tmp = path.with_name(path.name + ".tmp")
     try:
@@ -98,6 +101,8 @@ def load_map(path: str | Path) -> Mapper:
         mapper.taught = TaughtSet.from_state_dict(data.get("taught"))
     except (KeyError, ValueError, TypeError, AttributeError) as exc:
         raise MapFileError(f"{path}: bad taught objects ({exc})") from exc
+    built = data.get("built")
+    mapper.built = dict(built) if isinstance(built, dict) else {}   # maps saved before it: nothing recorded
     stats = data.get("stats", {})
     mapper.frames_seen = int(stats.get("frames", len(mapper.keyframes)))
     for k in mapper.totals:

@@ -23,7 +23,7 @@ class Context:
         cfg = cfg or RGConfig()
         self.cfg = dataclasses.replace(cfg, map=dataclasses.replace(cfg.map, **budgets.map_overrides),
                                        field=dataclasses.replace(cfg.field, **budgets.field_overrides))
-        self.scene = read_scene(scene_dir)
+        self.scene = read_scene(scene_dir, photo=self.cfg.photo)
         self.cache: dict = {}
         self.plots = self.out / "plots"
         self.plots.mkdir(parents=True, exist_ok=True)
