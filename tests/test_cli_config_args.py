@@ -13,7 +13,7 @@ from rg_core.config import RGConfig, config_to_dict
 
 SECTIONS = {"synth": {"synth"}, "map": {"map", "photo", "field", "models"}, "ground": {"ground", "reason", "models"},
             "graph": {"ground", "reason", "models"}, "eval": {"map", "photo", "field", "ground", "reason", "models"},
-            "report": {"map", "photo", "field", "ground", "reason", "models"}, "models": {"models"},
+            "report": {"map", "photo", "field", "ground", "reason", "models"}, "models": {"models"}, "sfm": {"sfm"},
             "demo": {"demo", "synth", "map", "field", "ground", "reason", "models"}}
 COMMANDS = {"synth": (synthesis, "cmd_synth"), "map": (mapping, "cmd_map"), "ground": (grounding, "cmd_ground"),
             "eval": (evaluation, "cmd_eval"), "demo": (reporting, "cmd_demo")}

@@ -4,7 +4,7 @@ Every subcommand accepts `--json` and then prints exactly one JSON object on std
 and logs go to stderr (C libraries that print to stdout are redirected while the command runs).
 The fields of the config sections a subcommand reads are options too (`--map.width 160`,
 config_args.py): defaults in code < `--config FILE` < the command line. Each subcommand lives in
-the module of its capability (synthesis, mapping, grounding, teaching, evaluation, reporting,
+the module of its capability (synthesis, sfm, mapping, grounding, teaching, evaluation, reporting,
 model_store).
 """
 from __future__ import annotations
@@ -18,7 +18,7 @@ from ..batch import EngineError
 from ..config import ConfigError, load_config
 from ..perception.base import BackendError
 from ..util import join_prefetches, stdout_to_stderr
-from . import evaluation, grounding, mapping, model_store, reporting, synthesis, teaching
+from . import evaluation, grounding, mapping, model_store, reporting, sfm, synthesis, teaching
 from .config_args import apply_overrides
 
 
@@ -26,7 +26,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rg", description="ReasonGrounder: 3D visual grounding, headless.")
     parser.add_argument("--config", help="YAML configuration file (see config/rg.example.yaml)")
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (synthesis.add_synth, mapping.add_map, grounding.add_ground, grounding.add_graph, evaluation.add_eval,
+    for add in (synthesis.add_synth, sfm.add_sfm, mapping.add_map, grounding.add_ground, grounding.add_graph, evaluation.add_eval,
                 teaching.add_point, teaching.add_teach, reporting.add_report, model_store.add_models, reporting.add_demo):
         add(sub)
     return parser

@@ -20,6 +20,7 @@ from .mapping import MapConfig, PhotoMapConfig
 from .models import ModelsConfig
 from .reason import ReasonConfig
 from .schema import ConfigError, check_fields, from_dict, section  # noqa: F401 - the package's API
+from .sfm import SfmConfig
 from .synth import DemoConfig, SynthConfig
 
 
@@ -35,6 +36,7 @@ class RGConfig:
     ground: GroundConfig = dataclasses.field(default_factory=GroundConfig)
     reason: ReasonConfig = dataclasses.field(default_factory=ReasonConfig)
     models: ModelsConfig = dataclasses.field(default_factory=ModelsConfig)
+    sfm: SfmConfig = dataclasses.field(default_factory=SfmConfig)
 
 
 def config_from_dict(data: dict | None, cls: type = RGConfig) -> Any:

@@ -1,4 +1,5 @@
-"""Point-set measures shared by the layers above: the map's resolution, nearest neighbours."""
+"""Point-set measures shared by the layers above: the map's resolution, nearest neighbours, the
+similarity that aligns two point sets."""
 from __future__ import annotations
 
 import numpy as np
@@ -64,3 +65,23 @@ def within(points, centre, radius: float) -> np.ndarray:
     c = torch.as_tensor(np.asarray(centre, np.float32).reshape(1, 3))
     d = torch.cdist(p, c, compute_mode="donot_use_mm_for_euclid_dist")[:, 0]               # [N]
     return torch.nonzero(d <= radius).reshape(-1).numpy()
+
+
+def similarity_transform(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """(s, R [3, 3], t [3]) minimising sum |s R src_i + t - dst_i|^2 over points [N, 3] (Umeyama 1991,
+    least squares with a proper rotation): how a model known up to a similarity, as structure from
+    motion's, lies in a reference world."""
+    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
+        raise ValueError(f"similarity_transform: need two [N, 3] point sets, N >= 3, got {src.shape} and {dst.shape}")
+    ms, md = src.mean(0), dst.mean(0)
+    a, b = src - ms, dst - md
+    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U) * np.linalg.det(Vt)) or 1.0
+    R = U @ D @ Vt
+    var = (a * a).sum() / len(src)
+    if var <= 0:
+        raise ValueError("similarity_transform: the source points all coincide")
+    s = float(np.trace(np.diag(S) @ D) / var)
+    return s, R, md - s * R @ ms
