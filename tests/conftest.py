@@ -76,6 +76,28 @@ def need_rgbd(name: str) -> Path:
     return path
 
 
+def photos_only(root: Path, points: int = 1500) -> Path:
+    """A ReasoningGD scene folder made photos alone, in place: depth images and `depth_file_path`
+    entries removed, points3d.ply thinned to `points` (a seeded sample, a sparse cloud's size)."""
+    import json
+    import shutil
+
+    import numpy as np
+
+    from rg_core.io.ply import read_ply, write_ply
+
+    shutil.rmtree(root / "depth", ignore_errors=True)
+    for name in ("transforms_train.json", "transforms_test.json"):
+        d = json.loads((root / name).read_text())
+        for f in d["frames"]:
+            f.pop("depth_file_path", None)
+        (root / name).write_text(json.dumps(d))
+    pts, cols = read_ply(root / "points3d.ply")
+    sel = np.random.default_rng(0).choice(len(pts), min(points, len(pts)), replace=False)
+    write_ply(root / "points3d.ply", pts[sel], cols[sel])
+    return root
+
+
 def assert_load_errors(load, error: type[Exception], folder: Path, cases) -> None:
     """A file loader names what is wrong with a file: for each (file name, text or None for a missing
     file, regex), `load(folder / name)` raises `error` matching regex. One table per loader instead of

@@ -158,24 +158,12 @@ def test_ssim_of_equal_images_is_one_and_drops_with_noise():
 def photo_scene(tmp_path_factory):
     """A synthetic scene with its depth images and depth_file_path entries removed (the
     ReasoningGD layout of photos alone) and a 1,500-point sparse cloud."""
-    import json
-    import shutil
-
-    from rg_core.io.ply import write_ply
+    from conftest import photos_only
 
     out = tmp_path_factory.mktemp("photo_only") / "scene"
     subprocess.run([sys.executable, "-m", "rg_core.cli", "synth", str(out), "--views", "12", "--size", "160x120",
                     "--seed", "714", "--objects", "3", "--quiet"], check=True, capture_output=True)
-    shutil.rmtree(out / "depth")
-    for name in ("transforms_train.json", "transforms_test.json"):
-        d = json.loads((out / name).read_text())
-        for f in d["frames"]:
-            f.pop("depth_file_path", None)
-        (out / name).write_text(json.dumps(d))
-    pts, cols = read_ply(out / "points3d.ply")
-    sel = np.random.default_rng(0).choice(len(pts), min(1500, len(pts)), replace=False)
-    write_ply(out / "points3d.ply", pts[sel], cols[sel])
-    return out
+    return photos_only(out)
 
 
 def test_a_scene_without_depth_maps_by_the_photo_fit_and_grounds(photo_scene, tmp_path):

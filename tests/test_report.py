@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 
@@ -72,6 +73,33 @@ def test_failing_section_is_recorded_and_the_rest_runs(tiny_scene, tmp_path):
     md = (tmp_path / "rep" / "report.md").read_text()
     assert "## Peak memory against frames" in md and "**This section failed**" in md
     assert "## Mapping: error against run time" in md and "![" in md
+    assert not (tmp_path / "rep" / "plots" / "photo_heldout_psnr_vs_time.png").exists()   # an RGB-D scene: no fit curve
+
+
+def test_a_scene_without_depth_reports_the_fits_psnr_against_time(tiny_scene, tmp_path):
+    """The tiny scene's photos alone (depth images and depth_file_path removed, 1,000 sparse points):
+    the mapping section fits them and plots held-out PSNR against seconds from the fit's summary."""
+    import shutil
+
+    from PIL import Image
+
+    from conftest import photos_only
+    from rg_core.report import tiny_budgets
+    from rg_core.report.runner import run_report
+
+    photos = photos_only(Path(shutil.copytree(tiny_scene, tmp_path / "photos")), points=1000)
+    rep = run_report(photos, tmp_path / "rep", tiny_budgets(), sections=("mapping",), progress=False)
+    sec = rep["sections"]["mapping"]
+    assert "error" not in sec, sec
+    png = tmp_path / "rep" / "plots" / "photo_heldout_psnr_vs_time.png"
+    assert sec["plots"] == [str(png)]
+    with Image.open(png) as im:
+        im.verify()
+        assert im.format == "PNG" and im.size[0] > 100
+    assert "](plots/photo_heldout_psnr_vs_time.png)" in (tmp_path / "rep" / "report.md").read_text()
+    curve = sec["photo"]["heldout_psnr"]
+    assert [r[0] for r in curve] == [15, 30, 45, 60] and all(math.isfinite(r[2]) for r in curve)
+    assert sec["tables"][1]["rows"] == curve and curve[-1][1] >= curve[0][1]
 
 
 def test_unknown_section_and_degraded_frames(tiny_scene, tmp_path):

@@ -44,7 +44,9 @@ def _demo_human(result: dict) -> str:
 
 def add_report(sub) -> None:
     p = sub.add_parser("report", help="error against run time, savings, scaling, stability: DIR/report.md + PNGs")
-    p.add_argument("scene", help="ReasoningGD scene folder (objects.json and queries.json for grounding) or BOP scene")
+    p.add_argument("scene", help="ReasoningGD scene folder (objects.json and queries.json for grounding) or BOP scene; "
+                                  "photos without depth: the mapping section plots the photo fit's held-out PSNR "
+                                  "against time")
     p.add_argument("--out", required=True, help="output folder (report.md, report.json, plots/)")
     p.add_argument("--tiny", action="store_true", help="seconds-long budgets (what the test suite runs)")
     p.add_argument("--sections", help="comma-separated subset of mapping,grounding,latency,memory,savings,"

@@ -16,6 +16,8 @@ class Budgets:
     """iters_per_keyframe of the mapping section, log-spaced (include the default to mark it)."""
     map_overrides: dict = field(default_factory=dict)
     """MapConfig fields changed for every run of the report (tiny: fewer iterations)."""
+    photo_overrides: dict = field(default_factory=dict)
+    """PhotoMapConfig fields changed for every photo-only fit (a scene without depth; tiny: tens of steps)."""
     field_overrides: dict = field(default_factory=dict)
     """FieldConfig fields changed for every run (tiny: a 2 s ceiling for the stop test and the saving
     that compares it with training the whole ceiling)."""
@@ -55,6 +57,8 @@ def tiny_budgets(**over) -> Budgets:
     """Seconds, not minutes: the test suite runs this so `rg report` keeps working."""
     base = dict(map_iters=(2, 4), map_overrides={"iters_per_keyframe": 4, "final_iters": 10, "width": 80},
                 field_overrides={"seconds": 2.0},
+                photo_overrides={"iters": 60, "check_every": 15, "densify_from": 15, "densify_every": 15,
+                                 "converge_db": 0.0, "reset_opacity_every": 0, "init_random": 1000},
                 field_seconds=(0.5, 1.0), latency_sizes=(300, 1500), latency_queries=2, savings_field_seconds=0.5,
                 cluster_all_max=1000, frames=(3, 6), sizes=((64, 48), (128, 96)), size_views=3, synth_objects=2,
                 stability_files=("tests/test_render_stability.py",), stability_k="float32 or huge",

@@ -11,7 +11,7 @@ from ..config import RGConfig
 from ..eval.mapping import evaluate_views
 from ..io.captures import read_scene
 from ..map.mapper import Mapper
-from ..map.run import stream_frames
+from ..map.run import build_map, stream_frames
 from .budgets import Budgets
 
 log = logging.getLogger(__name__)
@@ -22,8 +22,11 @@ class Context:
         self.scene_dir, self.out, self.b, self.progress = Path(scene_dir), Path(out), budgets, progress
         cfg = cfg or RGConfig()
         self.cfg = dataclasses.replace(cfg, map=dataclasses.replace(cfg.map, **budgets.map_overrides),
+                                       photo=dataclasses.replace(cfg.photo, **budgets.photo_overrides),
                                        field=dataclasses.replace(cfg.field, **budgets.field_overrides))
         self.scene = read_scene(scene_dir, photo=self.cfg.photo)
+        # no depth on any training frame: maps come from the photo-only fit (map/photo_fit.py)
+        self.photo = bool(self.scene.train) and all(f.depth_path is None for f in self.scene.train)
         self.cache: dict = {}
         self.plots = self.out / "plots"
         self.plots.mkdir(parents=True, exist_ok=True)
@@ -35,10 +38,23 @@ class Context:
 
     def map_run(self, key, frames=None, mapper_cls=Mapper, **over) -> tuple[Mapper, dict]:
         """Map the training frames (or `frames`) with cfg.map + `over`; evaluate on the clean test
-        views. Cached by `key`. Row: seconds, keyframes, gaussians, psnr, depth error (mm)."""
+        views. Cached by `key`. Row: seconds, keyframes, gaussians, psnr, depth error (mm). A scene
+        without depth is fitted from its photos instead (map.run.build_map: the photo section's
+        budget; `over` applies to the map config), and its row keeps the fit's summary ("built")."""
         if key in self.cache:
             return self.cache[key]
         mcfg = dataclasses.replace(self.cfg.map, **over)
+        if self.photo:
+            if frames is not None or mapper_cls is not Mapper:
+                raise ValueError(f"{self.scene_dir}: this section streams RGB-D frames; the scene has no depth images")
+            mapper, built = build_map(self.scene, mcfg, self.cfg.photo, self.progress)
+            q = evaluate_views(mapper, self.scene.test)
+            row = {"seconds": built["seconds"], "keyframes": len(mapper.keyframes), "gaussians": len(mapper.gaussians),
+                   "psnr": q.get("psnr", float("nan")), "psnr_valid_depth": float("nan"),
+                   "depth_err_mm": float("nan"), "coverage": q.get("coverage", float("nan")), "built": built}
+            self.log(f"map {key} (photo fit): {({k: v for k, v in row.items() if k != 'built'})}")
+            self.cache[key] = (mapper, row)
+            return mapper, row
         mapper = mapper_cls(mcfg)
         secs = stream_frames(mapper, frames if frames is not None else self.scene.train, self.progress, desc=str(key))
         secs += mapper.refine(mcfg.final_iters)

@@ -51,6 +51,20 @@ def line_plot(path: Path, panels: list[dict], title: str = "") -> str:
     return _save(fig, path, title)
 
 
+def photo_psnr_png(curve: list, path, stopped: str = "", title: str = "") -> str:
+    """Held-out PSNR (dB) against seconds of a photo-only fit (photo_fit.fit_summary's heldout_psnr
+    rows [step, seconds, PSNR, Gaussians]), the last point ringed with why it stopped; Gaussians on
+    the second panel."""
+    if not curve:
+        raise ValueError("photo fit: no held-out PSNR measured (check_every larger than the steps run)")
+    steps, secs, psnr, n = (list(c) for c in zip(*curve))
+    last = f"step {steps[-1]}" + (f", {stopped}" if stopped else "")
+    return line_plot(path, [
+        {"x": "fit seconds", "y": "held-out PSNR (dB)", "series": [("held-out pixels", secs, psnr)],
+         "mark": [(secs[-1], psnr[-1], last)]},
+        {"x": "fit seconds", "y": "Gaussians", "series": [("Gaussians", secs, n)]}], title)
+
+
 def calibration_png(queries: list[dict], path, threshold: float | None = None, title: str = "") -> str:
     """Risk against coverage (answers sorted by confidence, the threshold's point ringed) and the
     reliability diagram (share right against mean confidence, 10 bins) of one run's queries."""

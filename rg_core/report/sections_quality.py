@@ -8,7 +8,7 @@ import time
 from ..config import MapConfig
 from ..field.converge import describe
 from .inputs import SeedEverywhereMapper, degrade, resized_map, with_section
-from .plots import line_plot
+from .plots import line_plot, photo_psnr_png
 from .scaling import growth_exponent
 
 
@@ -19,6 +19,8 @@ def _table(title, columns, rows):
 def mapping(ctx) -> dict:
     """PSNR and depth error against mapping seconds, one run per iterations-per-keyframe budget and
     one with the per-keyframe stop test (map.converge_tol 0.02, ceiling the largest budget), marked."""
+    if ctx.photo:
+        return _photo_mapping(ctx)
     default = MapConfig().iters_per_keyframe
     rows = []
     for it in ctx.b.map_iters:
@@ -44,6 +46,27 @@ def mapping(ctx) -> dict:
     return {"text": [f"{len(ctx.scene.train)} training frames, {len(ctx.scene.test)} test views; final refinement "
                      f"{ctx.cfg.map.final_iters} iterations; default {default} it/kf."],
             "tables": [_table("Mapping budgets", cols, t)], "plots": [png], "data": rows, "stop": conv}
+
+
+def _photo_mapping(ctx) -> dict:
+    """A scene without depth: one photo-only fit (the photo section's budget) and its held-out PSNR
+    against seconds (map/photo_fit.py's fit_summary: rows step, seconds, PSNR, Gaussians)."""
+    _, row = ctx.base()
+    fit = row["built"]["photo"]
+    curve = fit["heldout_psnr"]
+    png = photo_psnr_png(curve, ctx.plots / "photo_heldout_psnr_vs_time.png", fit["stopped"],
+                         "Photo-only fit: held-out PSNR against run time")
+    cols = ("step", "seconds", "held-out PSNR dB", "Gaussians")
+    t = {"seconds": row["seconds"], "steps": fit["steps"], "stopped": fit["stopped"], "psnr": row["psnr"],
+         "gaussians": row["gaussians"], "keyframes": row["keyframes"]}
+    return {"text": [f"{len(ctx.scene.train)} training photos without depth, {len(ctx.scene.test)} test views: a "
+                     f"photo-only 3DGS fit ({fit['steps']} steps, stopped: {fit['stopped']}; world scale "
+                     f"{row['built']['world_scale']:.4g}, {row['built']['world_rule']} rule); the held-out pixels "
+                     "are a share of every training view the fit never trains on."],
+            "tables": [_table("Photo-only fit", list(t), [list(t.values())]),
+                       _table("Held-out PSNR against time", cols, curve)],
+            "plots": [png], "data": [{"iters": "photo fit", **{k: v for k, v in row.items() if k != "built"}}],
+            "photo": fit}
 
 
 def _ground_row(secs, steps, ev):
