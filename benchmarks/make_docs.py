@@ -22,7 +22,7 @@ from _common import RESULTS, ROOT, check_result  # noqa: E402
 DOC = ROOT / "docs" / "benchmarks.md"
 INTRO = ROOT / "benchmarks" / "docs_intro.md"
 # reading order: the pipeline's stages, then end-to-end figures; any other result file follows, by name
-ORDER = ("bench_rasterize", "bench_synth", "bench_mapping", "bench_bag", "bench_field", "bench_perception",
+ORDER = ("bench_rasterize", "bench_synth", "bench_mapping", "bench_photo", "bench_bag", "bench_field", "bench_perception",
          "bench_bop_naming", "bench_reasoning", "bench_latency", "bench_cache_accuracy", "bench_eval",
          "bench_confidence", "bench_relations", "bench_llm_parse", "bench_first_answer", "bench_room", "bench_teach", "bench_endurance", "bench_busy_map", "bench_report")
 UNITS = {"s": "s", "ms": "ms", "db": "dB", "mm": "mm", "pct": "%", "mb": "MB", "gb": "GB"}
