@@ -366,3 +366,51 @@ def test_teaching_a_click_answer_names_the_group_that_was_shown(minilm_map_file,
     t, res = teach.teach(g, "my peach", result=shown)
     assert np.array_equal(res.objects[0].gaussian_ids, shown.objects[0].gaussian_ids)
     assert np.allclose(t.point, clicks["peach"].point)
+
+
+def _plane_views(offsets, W=64):
+    """Keyframes over a fronto-parallel plane at z = 1 m (cameras at x = offsets) and, per view,
+    masks: 0 the object (|x|, |y| <= 0.1 m), 1 the object joined with its neighbour (x up to
+    0.3 m), 2 a part of it (x <= 0): what a depth cut gives when objects touch or a crease splits one."""
+    from types import SimpleNamespace
+
+    K = np.array([[W, 0, W / 2], [0, W, W / 2], [0, 0, 1.0]])
+    kfs, sups = [], []
+    for i, t in enumerate(offsets):
+        c2w = np.eye(4)
+        c2w[0, 3] = t
+        u, v = np.meshgrid(np.arange(W), np.arange(W))
+        x, y = (u - W / 2) / W + t, (v - W / 2) / W
+        obj = (np.abs(x) <= 0.1) & (np.abs(y) <= 0.1)
+        joined = obj | ((x > 0.1) & (x <= 0.3) & (np.abs(y) <= 0.1))
+        part = obj & (x <= 0.0)
+        kfs.append(SimpleNamespace(index=i, K=K, cam_to_world=c2w, depth=torch.ones(W, W), size=(W, W)))
+        sups.append(SimpleNamespace(masks=np.stack([obj, joined, part]), levels=np.array([1, 2, 0]),
+                                    scales=np.array([0.08, 0.14, 0.04])))
+    return kfs, sups
+
+
+@pytest.mark.parametrize("start", [1, 2])
+def test_views_agree_on_the_whole_object(start):
+    """One view's depth cut joined the object to its neighbour (start 1) or kept a part (start 2);
+    the other views hold the object: the agreeing choice is the object's mask in every view."""
+    from rg_core.grounding.locate import _agreeing
+
+    kfs, sups = _plane_views([0.0, 0.05, -0.05, 0.02])
+    covering = [(kfs[0], start, int(sups[0].levels[start]), float(sups[0].scales[start]))] + \
+               [(kf, 0, 1, 0.08) for kf in kfs[1:]]
+    holds = [np.arange(3)] * len(kfs)
+    out = _agreeing(covering, sups, holds)
+    assert [c[1] for c in out] == [0, 0, 0, 0]
+    assert out[0][2:] == (1, 0.08)
+
+
+def test_views_that_agree_keep_their_choice():
+    """Every view chose the joined mask: nothing disagrees, so nothing changes (ties keep the first
+    choice), and a single view is left as it is."""
+    from rg_core.grounding.locate import _agreeing
+
+    kfs, sups = _plane_views([0.0, 0.05, -0.05])
+    covering = [(kf, 1, 2, 0.14) for kf in kfs]
+    assert [c[1] for c in _agreeing(covering, sups, [np.arange(3)] * 3)] == [1, 1, 1]
+    assert _agreeing(covering[:1], sups[:1], [np.arange(3)]) == covering[:1]

@@ -4,11 +4,12 @@ of point and teach (point.py answers with it, teach.py finds taught objects agai
 The scale rule (docs/pipeline.md, "Point and teach"): the keyframes that see the point (their depth
 agrees with it) each give the supervision mask holding its pixel that is the whole object (the
 largest at the group level, cut at depth jumps, unless it spans more than twice the object level's
-scale: objects that touch, then the object level's), and the object's scale s is the median of
-those masks' physical scales; with no keyframe seeing the point, the median scale of the map's
+scale: objects that touch, then the object level's), re-chosen by the views' agreement (_agreeing),
+and the object's scale s is the median of those masks' physical scales; with no keyframe seeing the point, the median scale of the map's
 object-level masks. The group is the cluster of instance features at s holding the feature of the
 Gaussian nearest the point, voted on by those masks (seen outside them more often than inside:
-carved; inside several: joined), then by the masks of every view that sees the group so far, and
+carved; inside several: joined), then by the mask of every view that sees the group so far that is
+most the group (object_views), and
 cut to its piece in space around the point.
 """
 from __future__ import annotations
@@ -21,12 +22,14 @@ from ..geometry.points import nearest, within
 from .boxes import connected_to, group_boxes, robust_inliers
 from .carve import mask_votes
 from .result import GroundedObject
-from .stages import keyframe_view
+from .stages import keyframe_view, mask_points
 
 NEAR_RADIUS = 0.05     # m: a point farther than this from every Gaussian holds nothing mapped
 REACH, MIN_REACH = 4.0, 0.08   # the object's Gaussians lie within max(REACH x s, MIN_REACH) m of the point
 VOTE_ROUNDS = 3        # votes by the point's views, then twice by the views that see the group
 TOUCHING = 2.0         # a group-level mask this many times the object level's scale holds several objects
+AGREE_ROUNDS, AGREE_POINTS = 3, 150   # _agreeing: re-choice rounds, points per mask it projects
+NEAR_GROUP = 0.01      # m (+ the group's median Gaussian size): object_views' 'near the group'
 
 
 def check_point(point) -> np.ndarray:
@@ -44,7 +47,7 @@ def covering_masks(g, point: np.ndarray) -> list[tuple[object, int, int, float]]
     """(keyframe, mask index, level, scale) per keyframe that sees `point` [3]: its supervision mask
     that is the whole object at the point's pixel (_object_mask)."""
     sset = g.mapper.supervision
-    out = []
+    out, sups, holds = [], [], []
     for kf in g.mapper.keyframes:
         sup = sset.by_keyframe.get(kf.index) if sset is not None else None
         if sup is None or not len(sup.scales):
@@ -61,7 +64,70 @@ def covering_masks(g, point: np.ndarray) -> list[tuple[object, int, int, float]]
         if not len(hold):
             continue
         out.append((kf, *_object_mask(sup, hold)))
-    return out
+        sups.append(sup)
+        holds.append(hold)
+    return _agreeing(out, sups, holds)
+
+
+def _agreeing(covering: list, sups: list, holds: list, rounds: int = AGREE_ROUNDS) -> list:
+    """`covering` with each view's mask re-chosen among the masks holding the point's pixel (`holds`)
+    as the one that agrees best with the other views' choices: the mean over the other views of the
+    F1 of (its points seen there inside their mask, their points seen here inside it); the whole
+    object is the mask the views agree on, where one view's depth cut keeps a part or joins a
+    neighbour. Starts from _object_mask's choice; ties keep it."""
+    from .carve import sight
+
+    if len(covering) < 2 or all(len(h) < 2 for h in holds):
+        return covering
+    V = len(covering)
+    kfs = [c[0] for c in covering]
+    Ks = np.stack([np.asarray(k.K, np.float64) for k in kfs])
+    c2w = np.stack([np.asarray(k.cam_to_world, np.float64) for k in kfs])
+    depths = [k.depth.numpy() for k in kfs]
+    masks, pts = {}, {}       # (view, mask) -> [h, w] bool, its points [P, 3] (at most AGREE_POINTS)
+    for a, (kf, hold) in enumerate(zip(kfs, holds)):
+        for j in (hold if len(hold) > 1 else [covering[a][1]]):
+            masks[a, int(j)] = sups[a].masks[j]
+            p = mask_points(kf, masks[a, int(j)])
+            pts[a, int(j)] = p[:: max(1, len(p) // AGREE_POINTS)]
+    keys = list(pts)
+    ends = np.cumsum([len(pts[k]) for k in keys])
+    _, seen, r, u = sight(np.concatenate([pts[k] for k in keys]), Ks, c2w, depths, np.zeros(int(ends[-1])))  # [V, P]
+    seen_in = {}              # (view, mask) -> per view: the rows, cols of its points seen there
+    for k, e0, e1 in zip(keys, np.r_[0, ends[:-1]], ends):
+        sl = slice(int(e0), int(e1))
+        seen_in[k] = [(r[b, sl][seen[b, sl]], u[b, sl][seen[b, sl]]) for b in range(V)]
+    choice = [int(c[1]) for c in covering]
+
+    def share(a, j, b):   # of view a's mask j's points seen in view b, the share inside b's choice
+        r, u = seen_in[a, j][b]
+        return float(masks[b, choice[b]][r, u].mean()) if len(r) >= 5 else None
+
+    for _ in range(rounds):
+        new = []
+        for a, hold in enumerate(holds):
+            if len(hold) < 2:
+                new.append(choice[a])
+                continue
+            best, best_score = choice[a], -1.0
+            for j in [choice[a]] + [int(x) for x in hold if int(x) != choice[a]]:
+                f1 = []
+                for b in range(V):
+                    if b == a:
+                        continue
+                    p = share(a, j, b)
+                    r_, u_ = seen_in[b, choice[b]][a]
+                    q = float(masks[a, j][r_, u_].mean()) if len(r_) >= 5 else None
+                    if p is not None and q is not None:
+                        f1.append(2 * p * q / max(p + q, 1e-9))
+                score = float(np.mean(f1)) if f1 else -1.0
+                if score > best_score + 1e-9:
+                    best, best_score = j, score
+            new.append(best)
+        if new == choice:
+            break
+        choice = new
+    return [(c[0], j, int(sup.levels[j]), float(sup.scales[j])) for c, sup, j in zip(covering, sups, choice)]
 
 
 def _object_mask(sup, hold: np.ndarray) -> tuple[int, int, float]:
@@ -81,8 +147,9 @@ def _object_mask(sup, hold: np.ndarray) -> tuple[int, int, float]:
 
 def object_views(g, points: np.ndarray, sizes: np.ndarray, min_seen: int = 5) -> list:
     """MaskViews of the object whose Gaussians are `points` [n, 3] (sizes [n] m): in each keyframe
-    that sees at least `min_seen` of them, its whole-object mask (_object_mask) among the masks
-    holding at least half of the seen ones."""
+    that sees at least `min_seen` of them, among the masks holding at least half of the seen ones the
+    one that is most the group: the best F1 of (the seen ones' share inside it, its points' share
+    within NEAR_GROUP + their median size of one of them); ties keep _object_mask's choice."""
     from .carve import sight
 
     sset = g.mapper.supervision
@@ -90,6 +157,10 @@ def object_views(g, points: np.ndarray, sizes: np.ndarray, min_seen: int = 5) ->
            and sset.by_keyframe[kf.index].masks.shape[1:] == tuple(kf.depth.shape)]
     if not kfs or not len(points):
         return []
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(points)
+    reach = NEAR_GROUP + float(np.median(sizes))   # a mask's point this near a Gaussian of the group is the group's
     on, seen, rows, cols = sight(points, np.stack([np.asarray(k.K, np.float64) for k in kfs]),
                                  np.stack([np.asarray(k.cam_to_world, np.float64) for k in kfs]),
                                  [k.depth.numpy() for k in kfs], 1.5 * np.asarray(sizes, np.float64))
@@ -100,8 +171,18 @@ def object_views(g, points: np.ndarray, sizes: np.ndarray, min_seen: int = 5) ->
         sup = sset.by_keyframe[kf.index]
         share = sup.masks[:, r[s_], u[s_]].mean(1)                              # [M]
         hold = np.flatnonzero(share >= 0.5)
-        if len(hold):
-            out.append(keyframe_view(kf, sup.masks[_object_mask(sup, hold)[0]]))
+        if len(hold) > 1:   # the mask that is most the group: F1 of (share of the group in it, share of it near the group)
+            near = []
+            for j in hold:
+                q = mask_points(kf, sup.masks[j])
+                q = q[:: max(1, len(q) // AGREE_POINTS)]
+                near.append(float((tree.query(q, distance_upper_bound=reach)[0] <= reach).mean()) if len(q) else 0.0)
+            f1 = 2 * share[hold] * np.asarray(near) / np.maximum(share[hold] + np.asarray(near), 1e-9)
+            first = _object_mask(sup, hold)[0]
+            best = int(hold[int(np.argmax(f1))])
+            out.append(keyframe_view(kf, sup.masks[best if f1.max() > f1[list(hold).index(first)] + 1e-9 else first]))
+        elif len(hold):
+            out.append(keyframe_view(kf, sup.masks[hold[0]]))
     return [v for v in out if v is not None]
 
 
