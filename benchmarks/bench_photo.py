@@ -27,7 +27,7 @@ there (N/2 random initial Gaussians, a threshold that clones or splits all at st
 (VmHWM) and the Gaussians reached. A step profile (render forward/backward, SSIM forward/backward at
 the first scene's fitted Gaussians) says where the fit's time goes.
 --photo-iters (default 1000) is every photo fit's step ceiling: the config's own 7000 with its stop test
-(`--photo-iters 0`) takes 10-30 min a scene on 2 cores, too long for one run of all parts.
+(`--photo-iters 0`) took 31 min on seed 801's 17 views (2 busy cores), too long for one run of all parts.
 Targets: PSNR within 1.5 dB, explicit mIoU within 5 points of the RGB-D figure, the big scene queryable
 in <= 900 s, peak RSS <= 3 GB at 300k Gaussians. Writes photo.png (held-out PSNR against seconds of
 every fit, test PSNR and mIoU bars) and photo.json to --out.
