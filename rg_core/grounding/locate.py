@@ -5,8 +5,8 @@ The scale rule (docs/pipeline.md, "Point and teach"): the keyframes that see the
 agrees with it) each give the supervision mask holding its pixel that is the whole object (the
 largest at the group level, cut at depth jumps, unless it spans more than twice the object level's
 scale: objects that touch, then the object level's), re-chosen by the views' agreement (_agreeing),
-and the object's scale s is the median of those masks' physical scales; with no keyframe seeing the point, the median scale of the map's
-object-level masks. The group is the cluster of instance features at s holding the feature of the
+and the object's scale s is the median of those masks' physical scales; with no keyframe seeing the
+point, the median scale of the map's object-level masks. The group is the cluster of instance features at s holding the feature of the
 Gaussian nearest the point, voted on by those masks (seen outside them more often than inside:
 carved; inside several: joined), then by the mask of every view that sees the group so far that is
 most the group (object_views), and
@@ -45,7 +45,7 @@ def check_point(point) -> np.ndarray:
 
 def covering_masks(g, point: np.ndarray) -> list[tuple[object, int, int, float]]:
     """(keyframe, mask index, level, scale) per keyframe that sees `point` [3]: its supervision mask
-    that is the whole object at the point's pixel (_object_mask)."""
+    that is the whole object at the point's pixel (_object_mask, then the views' agreement: _agreeing)."""
     sset = g.mapper.supervision
     out, sups, holds = [], [], []
     for kf in g.mapper.keyframes:
@@ -88,8 +88,7 @@ def _agreeing(covering: list, sups: list, holds: list, rounds: int = AGREE_ROUND
     for a, (kf, hold) in enumerate(zip(kfs, holds)):
         for j in (hold if len(hold) > 1 else [covering[a][1]]):
             masks[a, int(j)] = sups[a].masks[j]
-            p = mask_points(kf, masks[a, int(j)])
-            pts[a, int(j)] = p[:: max(1, len(p) // AGREE_POINTS)]
+            pts[a, int(j)] = _thin(mask_points(kf, masks[a, int(j)]))
     keys = list(pts)
     ends = np.cumsum([len(pts[k]) for k in keys])
     _, seen, r, u = sight(np.concatenate([pts[k] for k in keys]), Ks, c2w, depths, np.zeros(int(ends[-1])))  # [V, P]
@@ -99,9 +98,9 @@ def _agreeing(covering: list, sups: list, holds: list, rounds: int = AGREE_ROUND
         seen_in[k] = [(r[b, sl][seen[b, sl]], u[b, sl][seen[b, sl]]) for b in range(V)]
     choice = [int(c[1]) for c in covering]
 
-    def share(a, j, b):   # of view a's mask j's points seen in view b, the share inside b's choice
-        r, u = seen_in[a, j][b]
-        return float(masks[b, choice[b]][r, u].mean()) if len(r) >= 5 else None
+    def inside(key, b, mask):   # of the points of `key` (view, mask) seen in view b, the share inside `mask`
+        r, u = seen_in[key][b]
+        return float(mask[r, u].mean()) if len(r) >= 5 else None
 
     for _ in range(rounds):
         new = []
@@ -115,9 +114,8 @@ def _agreeing(covering: list, sups: list, holds: list, rounds: int = AGREE_ROUND
                 for b in range(V):
                     if b == a:
                         continue
-                    p = share(a, j, b)
-                    r_, u_ = seen_in[b, choice[b]][a]
-                    q = float(masks[a, j][r_, u_].mean()) if len(r_) >= 5 else None
+                    p = inside((a, j), b, masks[b, choice[b]])
+                    q = inside((b, choice[b]), a, masks[a, j])
                     if p is not None and q is not None:
                         f1.append(2 * p * q / max(p + q, 1e-9))
                 score = float(np.mean(f1)) if f1 else -1.0
@@ -128,6 +126,11 @@ def _agreeing(covering: list, sups: list, holds: list, rounds: int = AGREE_ROUND
             break
         choice = new
     return [(c[0], j, int(sup.levels[j]), float(sup.scales[j])) for c, sup, j in zip(covering, sups, choice)]
+
+
+def _thin(points: np.ndarray) -> np.ndarray:
+    """Every k-th of a mask's points [P, 3], at most about AGREE_POINTS: enough to measure shares."""
+    return points[:: max(1, len(points) // AGREE_POINTS)]
 
 
 def _object_mask(sup, hold: np.ndarray) -> tuple[int, int, float]:
@@ -174,8 +177,7 @@ def object_views(g, points: np.ndarray, sizes: np.ndarray, min_seen: int = 5) ->
         if len(hold) > 1:   # the mask that is most the group: F1 of (share of the group in it, share of it near the group)
             near = []
             for j in hold:
-                q = mask_points(kf, sup.masks[j])
-                q = q[:: max(1, len(q) // AGREE_POINTS)]
+                q = _thin(mask_points(kf, sup.masks[j]))
                 near.append(float((tree.query(q, distance_upper_bound=reach)[0] <= reach).mean()) if len(q) else 0.0)
             f1 = 2 * share[hold] * np.asarray(near) / np.maximum(share[hold] + np.asarray(near), 1e-9)
             first = _object_mask(sup, hold)[0]
