@@ -385,3 +385,23 @@ def test_groups_ball_and_nearest_pick_gaussians_by_feature():
     ids, _ = g.nearest(torch.tensor([1.0, 0.0]), 10)                        # k above the rows: all of them
     assert ids.tolist() == [10, 20, 30, 40]
     assert Groups(labels=np.zeros(0, np.int64), centres=f[:0], clustered=0, seconds=0.0).ball(f[0]).size == 0
+
+
+def test_mask_points_thinned_are_a_stride_of_all_and_skip_missing_depth():
+    from rg_core.grounding.stages import mask_points
+    from rg_core.map.keyframes import Keyframe
+
+    h, w = 40, 50
+    depth = torch.full((h, w), 2.0)
+    depth[5:10, :] = 0.0                          # no reading: never a point
+    K = np.array([[60.0, 0, w / 2], [0, 60.0, h / 2], [0, 0, 1]])
+    kf = Keyframe(0, 0.0, np.eye(4), K, torch.zeros(h, w, 3), depth)
+    mask = np.zeros((h, w), bool)
+    mask[:30, 10:40] = True
+    full = mask_points(kf, mask)
+    assert len(full) == 25 * 30 and np.allclose(full[:, 2], 2.0)
+    thin = mask_points(kf, mask, at_most=100)
+    assert 100 <= len(thin) <= 200                 # "at most about twice that"
+    np.testing.assert_array_equal(thin, full[:: len(full) // 100])
+    np.testing.assert_array_equal(mask_points(kf, mask, at_most=10_000), full)
+    assert mask_points(kf, np.zeros((h, w), bool), at_most=5).shape == (0, 3)

@@ -88,7 +88,7 @@ def _agreeing(covering: list, sups: list, holds: list, rounds: int = AGREE_ROUND
     for a, (kf, hold) in enumerate(zip(kfs, holds)):
         for j in (hold if len(hold) > 1 else [covering[a][1]]):
             masks[a, int(j)] = sups[a].masks[j]
-            pts[a, int(j)] = _thin(mask_points(kf, masks[a, int(j)]))
+            pts[a, int(j)] = mask_points(kf, masks[a, int(j)], AGREE_POINTS)
     keys = list(pts)
     ends = np.cumsum([len(pts[k]) for k in keys])
     _, seen, r, u = sight(np.concatenate([pts[k] for k in keys]), Ks, c2w, depths, np.zeros(int(ends[-1])))  # [V, P]
@@ -126,11 +126,6 @@ def _agreeing(covering: list, sups: list, holds: list, rounds: int = AGREE_ROUND
             break
         choice = new
     return [(c[0], j, int(sup.levels[j]), float(sup.scales[j])) for c, sup, j in zip(covering, sups, choice)]
-
-
-def _thin(points: np.ndarray) -> np.ndarray:
-    """Every k-th of a mask's points [P, 3], at most about AGREE_POINTS: enough to measure shares."""
-    return points[:: max(1, len(points) // AGREE_POINTS)]
 
 
 def _object_mask(sup, hold: np.ndarray) -> tuple[int, int, float]:
@@ -177,7 +172,7 @@ def object_views(g, points: np.ndarray, sizes: np.ndarray, min_seen: int = 5) ->
         if len(hold) > 1:   # the mask that is most the group: F1 of (share of the group in it, share of it near the group)
             near = []
             for j in hold:
-                q = _thin(mask_points(kf, sup.masks[j]))
+                q = mask_points(kf, sup.masks[j], AGREE_POINTS)
                 near.append(float((tree.query(q, distance_upper_bound=reach)[0] <= reach).mean()) if len(q) else 0.0)
             f1 = 2 * share[hold] * np.asarray(near) / np.maximum(share[hold] + np.asarray(near), 1e-9)
             first = _object_mask(sup, hold)[0]

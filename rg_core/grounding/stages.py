@@ -9,13 +9,15 @@ import numpy as np
 import torch
 
 from ..geometry.conventions import pixels_to_points
-from ..geometry.points import nearest, within
+from ..geometry.points import within
 from .boxes import connected_to, group_boxes, robust_inliers
 from .carve import MaskView, mask_votes
 from .grouping import Groups
 from .phrases import names_match
 from .relevancy import CANONICAL, relevancy
 from .result import GroundedObject
+
+SHARE_POINTS = 1000   # carve_views: a mask's points it measures the share near the instance with
 
 
 @dataclass
@@ -192,10 +194,14 @@ def keyframe_view(kf, mask: np.ndarray) -> MaskView | None:
                     np.asarray(mask))
 
 
-def mask_points(kf, mask: np.ndarray) -> np.ndarray:
-    """[P, 3] world points of a keyframe's mask [h, w] (its size) at the pixels with a depth reading."""
+def mask_points(kf, mask: np.ndarray, at_most: int = 0) -> np.ndarray:
+    """[P, 3] world points of a keyframe's mask [h, w] (its size) at the pixels with a depth reading;
+    `at_most` > 0: every k-th of them, at most about twice that (enough to measure a share)."""
     d = kf.depth.numpy()
     vs, us = np.nonzero(np.asarray(mask, bool) & (d > 0))
+    if at_most > 0:
+        step = max(1, len(vs) // at_most)
+        vs, us = vs[::step], us[::step]
     return pixels_to_points(us, vs, d[vs, us], np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64))
 
 
@@ -206,6 +212,8 @@ def carve_views(g, ref: Reference, anchor: np.ndarray | None = None) -> list[Mas
     max(2 cm, s*/2) of `anchor` [P, 3] (default: the reference mask's points): the same instance. A
     keyframe then gives the most similar of its masks that is; a second lego brick across the room
     is not this one, and its masks would carve this one away."""
+    from scipy.spatial import cKDTree
+
     n, share = g.gcfg.carve_views, g.gcfg.instance_overlap
     cands = ref.candidates
     if n <= 0 or not cands:
@@ -216,6 +224,7 @@ def carve_views(g, ref: Reference, anchor: np.ndarray | None = None) -> list[Mas
         anchor = mask_points(ref.keyframe, ref.mask.numpy()) if on_ref and share > 0 else np.zeros((0, 3))
     check = share > 0 and len(anchor) > 0
     tol = max(0.02, 0.5 * ref.scale)
+    near_anchor = cKDTree(np.asarray(anchor, np.float64)) if check else None   # one tree for every mask
     sup = g.mapper.supervision.by_keyframe
     picked = []                                                         # (pixels, keyframe, mask)
     for c in cands:
@@ -233,8 +242,8 @@ def carve_views(g, ref: Reference, anchor: np.ndarray | None = None) -> list[Mas
                 continue
             f = 1.0
             if check:
-                p = mask_points(kf, s.masks[i])
-                f = float(np.mean(nearest(anchor, p, 1)[0][:, 0] <= tol)) if len(p) else 0.0
+                p = mask_points(kf, s.masks[i], SHARE_POINTS)
+                f = float(np.mean(near_anchor.query(p, distance_upper_bound=tol)[0] <= tol)) if len(p) else 0.0
                 if f < share:
                     continue
             if best is None or (sim, f) > best[:2]:
