@@ -41,7 +41,7 @@ def scene(tmp_path_factory):
     sel = np.random.default_rng(0).choice(len(pts), min(1500, len(pts)), replace=False)
     cols = cols[sel].astype(np.float64)
     cols = cols / 255.0 if cols.max() > 1 else cols
-    return dict(train=views(sc.train), test=views(sc.test), points=pts[sel], colors=cols)
+    return dict(train=views(sc.train), test=views(sc.test), points=pts[sel], colors=cols, frames=sc.train)
 
 
 CFG = PhotoMapConfig(iters=240, check_every=40, densify_from=40, densify_every=40, densify_until=0.6,
@@ -200,3 +200,87 @@ def test_a_scene_with_depth_on_some_frames_only_is_refused(photo_scene, tmp_path
     sc.train[0].depth_path = tmp_path / "0000.png"   # one frame claims a depth image
     with pytest.raises(SceneError, match="no depth images"):
         build_map(sc, MapConfig(width=WIDTH), CFG, progress=False)
+
+
+# ------------------------------------------------------------------------------ held-out views, extent, initialisation
+
+def test_heldout_views_lie_between_trained_ones():
+    from rg_core.map.photo_fit import heldout_views
+
+    assert heldout_views(17, 0.1) == [4, 12] and heldout_views(20, 0.1) == [5, 15]
+    assert heldout_views(10, 0.1) == [5] and heldout_views(3, 0.1) == [1]   # at least one of 3 or more
+    assert heldout_views(2, 0.1) == [] and heldout_views(17, 0.0) == []
+    assert len(heldout_views(100, 0.1)) == 10
+
+
+def test_heldout_views_are_trained_on_only_after_the_stop_is_decided(scene):
+    train = [v for v, _ in scene["train"]]
+    f = PhotoFitter(train, dataclasses.replace(CFG, iters=200), MapConfig(width=WIDTH), scene["points"], scene["colors"])
+    assert f.held and not f.joined
+    seen, render = [], f._render
+
+    def spy(v, params):
+        if torch.is_grad_enabled():                  # a training step (the stop test renders without grad)
+            seen.append((len(seen) + 1, v.index))
+        return render(v, params)
+
+    f._render = spy
+    fit = f.fit(progress=False)
+    held = {train[i].index for i in fit.heldout}
+    assert fit.decided == 170 and fit.steps == 200 and fit.history[-1][0] == fit.decided   # (1 - 0.15) x 200
+    assert not any(i in held for s, i in seen if s <= fit.decided)
+    assert any(i in held for s, i in seen if s > fit.decided)
+    assert len(seen) == fit.steps
+
+
+def test_extent_is_at_least_the_viewing_distance():
+    from rg_core.geometry.conventions import look_at
+    from rg_core.map.photo_fit import scene_extent, viewing_depth
+
+    K = np.array([[40.0, 0, 39.5], [0, 40.0, 29.5], [0, 0, 1]])
+    views = [PhotoView(torch.zeros(60, 80, 3), K, look_at(np.array([0.003 * i, 0, 0]), np.array([0.0, 0, 1])))
+             for i in range(3)]                       # near-static cameras, 6 mm apart
+    pts = np.random.default_rng(0).uniform([-0.3, -0.2, 1.0], [0.3, 0.2, 1.4], (400, 3))
+    d = viewing_depth(views, pts)
+    assert 1.1 < d < 1.3
+    assert scene_extent(views) == pytest.approx(0.1) and scene_extent(views, d) == pytest.approx(d)
+    assert viewing_depth(views, -pts) is None          # all behind the cameras
+
+
+def test_random_start_lies_around_the_viewing_distance(scene, monkeypatch):
+    """Without points the depths are drawn within a factor 2 of the viewing distance (the hint, else
+    photo.world_depth), not from map.near to 10 x the extent."""
+    import rg_core.map.photo_fit as pf
+
+    got, draw = [], pf.initial_points
+    monkeypatch.setattr(pf, "initial_points", lambda views, n, near, far, rng: got.append((near, far)) or
+                        draw(views, n, near, far, rng))
+    train = [v for v, _ in scene["train"]]
+    f = PhotoFitter(train, dataclasses.replace(CFG, init_random=500), MapConfig(width=WIDTH), depth_hint=0.8)
+    assert got[-1] == pytest.approx((0.4, 1.6)) and f.depth == 0.8 and f.extent >= 0.8
+    f = PhotoFitter(train, dataclasses.replace(CFG, init_random=500, world_depth=0.5), MapConfig(width=WIDTH))
+    assert got[-1] == pytest.approx((0.25, 1.0)) and len(f.g) == 500
+
+
+def test_triangulation_at_known_poses_finds_the_surface(tmp_path):
+    """A scene with poses but no points: pycolmap's matches triangulated at the frames' poses lie on
+    the scene's surface (the synthetic sensor depth, which the triangulation never reads)."""
+    from rg_core.geometry.conventions import project
+    from rg_core.io.sfm import triangulate_posed
+
+    out = tmp_path / "scene"
+    subprocess.run([sys.executable, "-m", "rg_core.cli", "synth", str(out), "--views", "12", "--size", "320x240",
+                    "--seed", "715", "--objects", "7", "--quiet"], check=True, capture_output=True)
+    frames = read_scene(out).train
+    pts = triangulate_posed(frames)
+    assert pts is not None and len(pts.xyz) >= 50 and pts.rgb.dtype == np.uint8, pts
+    for f in frames[:3]:
+        depth = f.load_depth()
+        h, w = depth.shape
+        uv, z = project(pts.xyz, f.intrinsics.K, f.cam_to_world)
+        px = np.round(uv).astype(int)
+        ok = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+        sensor = depth[px[ok, 1], px[ok, 0]]
+        good = sensor > 0
+        assert good.sum() >= 20
+        assert np.median(np.abs(z[ok][good] - sensor[good]) / sensor[good]) < 0.05

@@ -98,7 +98,9 @@ def test_a_scene_without_depth_reports_the_fits_psnr_against_time(tiny_scene, tm
         assert im.format == "PNG" and im.size[0] > 100
     assert "](plots/photo_heldout_psnr_vs_time.png)" in (tmp_path / "rep" / "report.md").read_text()
     curve = sec["photo"]["heldout_psnr"]
-    assert [r[0] for r in curve] == [15, 30, 45, 60] and all(math.isfinite(r[2]) for r in curve)
+    # every check_every steps until the stop is decided at (1 - join_share) x 60 = 51, then the held-out views join
+    assert [r[0] for r in curve] == [15, 30, 45, 51] and all(math.isfinite(r[2]) for r in curve)
+    assert sec["photo"]["decided"] == 51 and sec["photo"]["steps"] == 60 and sec["photo"]["heldout_views"]
     assert sec["tables"][1]["rows"] == curve and curve[-1][1] >= curve[0][1]
 
 

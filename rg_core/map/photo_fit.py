@@ -4,16 +4,22 @@ for the sensor's, so supervision, the field and grounding run unchanged (the pap
 field first, features after).
 
 - Initialisation: the sparse points (COLMAP points3D, points3d.ply) with 3DGS's scale rule (mean
-  distance to the 3 nearest neighbours), or `init_random` points in the cameras' view volume.
+  distance to the 3 nearest neighbours); a scene with poses but no points gets them triangulated at
+  its poses (io/sfm.triangulate_posed, pycolmap); else `init_random` points in the cameras' frusta at
+  depths within a factor 2 of the typical viewing distance (LLFF's bounds, else `world_depth`).
+- Scene extent (the means' learning rate, the clone / split and prune sizes scale with it): 3DGS's
+  1.1 x the cameras' spread, at least the typical viewing distance (near-static cameras).
 - Loss: (1 - lambda) L1 + lambda D-SSIM (pytorch_msssim's SSIM, an 11 px Gaussian window) of the
   render composited over the learnt background.
 - Adaptive density control: the mean view-space positional gradient (NDC units) of each Gaussian
   above `grad_threshold` clones the small ones and splits the large ones; low opacity (and, after
   the first opacity reset, a size above `prune_extent_share` of the scene) prunes; opacities are
   reset to 0.01 every `reset_opacity_every` steps while densifying. `max_gaussians` bounds it.
-- Stop: held-out pixels of every view (`holdout`) are never trained on; their PSNR is measured every
-  `check_every` steps, and once density control ended, the fit stops when the best PSNR gained less
-  than `converge_db` over `converge_window` steps (`iters` is the ceiling). tqdm shows progress.
+- Stop: a share of the views (`holdout_views`, evenly spaced) is held out whole, so the test measures
+  novel views, not interpolation between trained pixels; their PSNR is measured every `check_every`
+  steps, and once density control ended, the stop is decided when the best PSNR gained less than
+  `converge_db` over `converge_window` steps, or at (1 - `join_share`) x `iters`. The held-out views
+  are then trained on with the others for a last `join_share` of the steps. tqdm shows progress.
 """
 from __future__ import annotations
 
@@ -52,13 +58,42 @@ class PhotoFit:
     steps: int = 0
     seconds: float = 0.0
     totals: dict = field(default_factory=dict)
+    decided: int = 0                                   # step the stop was decided (then the held-out views joined)
+    heldout: list = field(default_factory=list)        # indices of the views held out until then
+    init: str = ""                                     # what the Gaussians started from
 
 
-def scene_extent(views: list[PhotoView]) -> float:
-    """3DGS's scene radius: 1.1 x the largest distance of a camera centre from their mean (at least
-    a small floor for a single or static camera)."""
+def scene_extent(views: list[PhotoView], depth: float | None = None) -> float:
+    """3DGS's scene radius: 1.1 x the largest distance of a camera centre from their mean, at least
+    `depth` (the typical viewing distance: near-static cameras, a few mm apart, still see a scene a
+    metre away, which the means must be able to move across), else at least 0.1."""
     c = np.stack([v.cam_to_world[:3, 3] for v in views])
-    return float(max(1.1 * np.linalg.norm(c - c.mean(0), axis=1).max(), 0.1))
+    return float(max(1.1 * np.linalg.norm(c - c.mean(0), axis=1).max(), depth or 0.0, 0.1 if not depth else 0.0))
+
+
+def viewing_depth(views: list[PhotoView], points: np.ndarray) -> float | None:
+    """Median over the views of the median depth of the points in front of the camera and inside
+    its image (None: no view sees any): the scene's typical viewing distance."""
+    meds = []
+    for v in views:
+        w2c = np.linalg.inv(v.cam_to_world)
+        cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+        z = cam[:, 2]
+        ok = z > 1e-6
+        uv = cam[ok, :2] / z[ok, None] * v.K[[0, 1], [0, 1]] + v.K[:2, 2]
+        h, w = v.rgb.shape[:2]
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        if inside.any():
+            meds.append(float(np.median(z[ok][inside])))
+    return float(np.median(meds)) if meds else None
+
+
+def heldout_views(n: int, share: float) -> list[int]:
+    """Indices of the views held out for the stop test: round(share x n) (at least 1 when share > 0
+    and n >= 3, none otherwise) at the centres of n / k equal runs, so that they lie between
+    trained views as test views do."""
+    k = 0 if share <= 0 or n < 3 else min(max(1, round(share * n)), n - 2)
+    return sorted({int((i + 0.5) * n / k) for i in range(k)}) if k else []
 
 
 def initial_points(views: list[PhotoView], n: int, near: float, far: float,
@@ -108,26 +143,33 @@ class PhotoFitter:
     """fit() runs the optimisation; one instance per map."""
 
     def __init__(self, views: list[PhotoView], cfg: PhotoMapConfig | None = None, map_cfg: MapConfig | None = None,
-                 points: np.ndarray | None = None, colors: np.ndarray | None = None):
+                 points: np.ndarray | None = None, colors: np.ndarray | None = None, depth_hint: float | None = None):
         if not views:
             raise ValueError("photo map: no views to fit")
         self.views, self.cfg, self.map_cfg = views, cfg or PhotoMapConfig(), map_cfg or MapConfig()
         c = self.cfg
         self.rng = np.random.default_rng(c.seed)
         self.gen = torch.Generator().manual_seed(c.seed)
-        self.extent = scene_extent(views)
         if points is None or len(points) < 4:
-            points, colors = initial_points(views, c.init_random, self.map_cfg.near, min(self.map_cfg.far, 10 * self.extent),
+            d = depth_hint or c.world_depth   # no points: a band around the typical viewing distance
+            self.depth = d
+            points, colors = initial_points(views, c.init_random, max(self.map_cfg.near, d / 2), min(self.map_cfg.far, 2 * d),
                                             self.rng)
+        else:
+            self.depth = viewing_depth(views, np.asarray(points, np.float64)) or depth_hint
+        self.extent = scene_extent(views, self.depth)
         self.g = gaussians_from_points(points, colors if colors is not None else np.full((len(points), 3), 0.5))
         self.optim = ResizableAdam(self.g, {"means": c.lr_means * self.extent, "log_scales": c.lr_scales,
                                             "quats": c.lr_quats, "opacity_logits": c.lr_opacity,
                                             "colors": c.lr_colors, "background": c.lr_colors})
-        self.holdout = [torch.rand(v.rgb.shape[:2], generator=self.gen) < c.holdout for v in views]  # [H, W] bool each
+        self.held = heldout_views(len(views), c.holdout_views)          # whole views kept for the stop test
+        self.train_idx = [i for i in range(len(views)) if i not in set(self.held)]
+        self.joined = not self.held                                     # held-out views trained on too
         self._grad = torch.zeros(len(self.g))
         self._seen = torch.zeros(len(self.g))
         self.totals = {"cloned": 0, "split": 0, "pruned": 0, "resets": 0}
         self.reset_done = False
+        self.decided = 0
 
     def _render(self, v: PhotoView, params: dict):
         h, w = v.rgb.shape[:2]
@@ -139,17 +181,16 @@ class PhotoFitter:
         return out, rgb
 
     def step(self, it: int) -> float:
-        c, v_i = self.cfg, int(self.rng.integers(len(self.views)))
-        v, hold = self.views[v_i], self.holdout[v_i]
+        c = self.cfg
+        pool = range(len(self.views)) if self.joined else self.train_idx
+        v = self.views[pool[int(self.rng.integers(len(pool)))]]
         params = {k: t.detach().requires_grad_(True) for k, t in self.g.tensors().items()}
         out, rgb = self._render(v, params)
         m2d = out.projected.means2d if out.projected is not None else None
         if m2d is not None and m2d.requires_grad:
             m2d.retain_grad()
-        train = ~hold
-        target = torch.where(hold[..., None], rgb.detach(), v.rgb)      # held-out pixels add no error
-        l1 = ((rgb - v.rgb).abs() * train[..., None]).sum() / (3 * train.sum().clamp(min=1))
-        loss = (1 - c.lambda_dssim) * l1 + c.lambda_dssim * (1 - ssim(rgb, target))
+        l1 = (rgb - v.rgb).abs().mean()
+        loss = (1 - c.lambda_dssim) * l1 + c.lambda_dssim * (1 - ssim(rgb, v.rgb))
         loss.backward()
         decay = 0.01 ** min(1.0, it / max(c.iters, 1))                 # 3DGS: exponential to 1 %
         self.optim.lrs["means"] = c.lr_means * self.extent * decay
@@ -211,12 +252,15 @@ class PhotoFitter:
 
     @torch.no_grad()
     def heldout_psnr(self) -> float:
-        """PSNR (dB) over the held-out pixels of every view."""
+        """PSNR (dB) over the held-out views (nan without any)."""
+        if not self.held:
+            return float("nan")
         se, n = 0.0, 0
         params = self.g.tensors()
-        for v, hold in zip(self.views, self.holdout):
+        for i in self.held:
+            v = self.views[i]
             _, rgb = self._render(v, params)
-            d = (rgb.clamp(0, 1) - v.rgb)[hold]
+            d = rgb.clamp(0, 1) - v.rgb
             se += float((d * d).sum())
             n += int(d.numel())
         mse = se / max(n, 1)
@@ -227,9 +271,12 @@ class PhotoFitter:
 
         c, t0 = self.cfg, time.perf_counter()
         until = int(c.densify_until * c.iters)
-        hist, stopped, it = [], "budget", 0
+        decide = max(1, round((1 - c.join_share) * c.iters)) if self.held else c.iters   # the latest stop decision
+        hist, stopped, it, end = [], "budget", 0, c.iters
         bar = tqdm(total=c.iters, desc="photo map", unit="step", disable=not progress, leave=False)
         for it in range(1, c.iters + 1):
+            if it > end:
+                break
             loss = self.step(it)
             if not math.isfinite(loss):
                 raise FloatingPointError(f"photo map: loss is {loss} at step {it} (diverged)")
@@ -241,16 +288,19 @@ class PhotoFitter:
                                                                                           math.log(0.01 / 0.99)))
                 self.totals["resets"] += 1
                 self.reset_done = True
-            if it % c.check_every == 0 or it == c.iters:
+            if not self.joined and (it % c.check_every == 0 or it == decide):
                 p = self.heldout_psnr()
                 hist.append((it, time.perf_counter() - t0, p, len(self.g)))
                 bar.set_postfix(psnr=f"{p:.2f}", gaussians=len(self.g))
-                if c.converge_db > 0 and it > until and self._converged(hist, until):
-                    stopped = "converged"
-                    break
+                conv = c.converge_db > 0 and it > until and self._converged(hist, until)
+                if conv or it >= decide:   # decided: the held-out views join for the last join_share
+                    stopped = "converged" if conv else "budget"
+                    self.joined, self.decided = True, it
+                    end = min(c.iters, it + math.ceil(it * c.join_share / max(1 - c.join_share, 1e-9)))
             bar.update(1)
         bar.close()
-        return PhotoFit(self.g, hist, stopped, it, time.perf_counter() - t0, dict(self.totals))
+        return PhotoFit(self.g, hist, stopped, min(it, end), time.perf_counter() - t0, dict(self.totals),
+                        decided=self.decided or min(it, end), heldout=list(self.held))
 
     def _converged(self, hist: list, until: int) -> bool:
         c = self.cfg
@@ -306,10 +356,17 @@ def photo_mapper(frames, map_cfg: MapConfig | None = None, cfg: PhotoMapConfig |
     views = [photo_view(f, map_cfg.width) for f in frames]
     for i, v in enumerate(views):   # a keyframe's index is its position in the input stream, as the Mapper's
         v.index = i
+    cfg = cfg or PhotoMapConfig()
+    if (points is None or len(points.xyz) < 4) and cfg.triangulate:   # poses but no points: triangulate them
+        from ..io.sfm import triangulate_posed
+
+        points = triangulate_posed(frames, min_angle_deg=cfg.triangulate_min_angle)
     xyz = rgb = None
     if points is not None and len(points.xyz) >= 4:
         xyz, rgb = points.xyz, np.asarray(points.rgb, np.float64) / 255.0
-    fit = PhotoFitter(views, cfg, map_cfg, xyz, rgb).fit(progress=progress)
+    bounds = [math.sqrt(max(f.bounds[0], 1e-9) * f.bounds[1]) for f in frames if getattr(f, "bounds", None)]
+    fit = PhotoFitter(views, cfg, map_cfg, xyz, rgb, float(np.median(bounds)) if bounds else None).fit(progress=progress)
+    fit.init = points.source if xyz is not None and points is not None else f"{cfg.init_random} random"
     m = Mapper(map_cfg)
     m.gaussians = fit.gaussians
     m.optim = ResizableAdam(m.gaussians, m.optim.lrs)   # refinement and the node continue from here
@@ -329,6 +386,8 @@ def photo_mapper(frames, map_cfg: MapConfig | None = None, cfg: PhotoMapConfig |
 def fit_summary(fit: PhotoFit) -> dict:
     """What a report says of a fit: steps, why it stopped, seconds, Gaussians, density control and
     the held-out PSNR against time (the curve `rg report` plots)."""
-    return {"steps": fit.steps, "stopped": fit.stopped, "seconds": round(fit.seconds, 3),
+    return {"steps": fit.steps, "stopped": fit.stopped, "decided": fit.decided, "heldout_views": fit.heldout,
+            "init": fit.init,
+            "seconds": round(fit.seconds, 3),
             "gaussians": len(fit.gaussians), **fit.totals,
             "heldout_psnr": [[h[0], round(h[1], 3), round(h[2], 3), h[3]] for h in fit.history]}

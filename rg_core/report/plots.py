@@ -56,11 +56,12 @@ def photo_psnr_png(curve: list, path, stopped: str = "", title: str = "") -> str
     rows [step, seconds, PSNR, Gaussians]), the last point ringed with why it stopped; Gaussians on
     the second panel."""
     if not curve:
-        raise ValueError("photo fit: no held-out PSNR measured (check_every larger than the steps run)")
+        raise ValueError("photo fit: no held-out PSNR measured (fewer than 3 views, photo.holdout_views 0, "
+                         "or check_every larger than the steps run)")
     steps, secs, psnr, n = (list(c) for c in zip(*curve))
     last = f"step {steps[-1]}" + (f", {stopped}" if stopped else "")
     return line_plot(path, [
-        {"x": "fit seconds", "y": "held-out PSNR (dB)", "series": [("held-out pixels", secs, psnr)],
+        {"x": "fit seconds", "y": "held-out PSNR (dB)", "series": [("held-out views", secs, psnr)],
          "mark": [(secs[-1], psnr[-1], last)]},
         {"x": "fit seconds", "y": "Gaussians", "series": [("Gaussians", secs, n)]}], title)
 

@@ -61,8 +61,9 @@ def _photo_mapping(ctx) -> dict:
          "gaussians": row["gaussians"], "keyframes": row["keyframes"]}
     return {"text": [f"{len(ctx.scene.train)} training photos without depth, {len(ctx.scene.test)} test views: a "
                      f"photo-only 3DGS fit ({fit['steps']} steps, stopped: {fit['stopped']}; world scale "
-                     f"{row['built']['world_scale']:.4g}, {row['built']['world_rule']} rule); the held-out pixels "
-                     "are a share of every training view the fit never trains on."],
+                     f"{row['built']['world_scale']:.4g}, {row['built']['world_rule']} rule); the held-out views "
+                     f"({len(fit.get('heldout_views', []))} of the training photos, evenly spaced) are not trained on "
+                     f"until the stop is decided (step {fit.get('decided', fit['steps'])}), then join for the rest."],
             "tables": [_table("Photo-only fit", list(t), [list(t.values())]),
                        _table("Held-out PSNR against time", cols, curve)],
             "plots": [png], "data": [{"iters": "photo fit", **{k: v for k, v in row.items() if k != "built"}}],
