@@ -105,3 +105,45 @@ def test_mask_generator_input_errors():
         gen.generate(rgb.astype(np.float32), np.ones((20, 30), np.float32), K)
     with pytest.raises(ValueError, match="unknown mask generator 'sam9'"):
         make_mask_generator("sam9")
+
+
+def _table_with_flat_object(height: float, noise: float, seed: int = 0):
+    """A grey table 0.6 m away filling the view, a red 60 x 40 px card `height` m thick on it, depth
+    noise of std `noise` m: (rgb, depth, card mask)."""
+    H, W = 240, 320
+    rng = np.random.default_rng(seed)
+    card = np.zeros((H, W), bool)
+    card[100:140, 130:190] = True
+    depth = np.full((H, W), 0.6) - height * card + rng.normal(0.0, noise, (H, W)) if noise else \
+        np.full((H, W), 0.6) - height * card
+    rgb = np.full((H, W, 3), 128, np.uint8)
+    rgb[card] = (200, 30, 30)
+    return rgb, depth.astype(np.float32), card
+
+
+@pytest.mark.parametrize("height", [0.004, 0.006])
+def test_a_flat_object_on_a_clean_table_is_not_swallowed_by_the_plane(height):
+    # 4-6 mm is within RANSAC's 8 mm inlier distance: the plane's own residuals (none here) set the reach
+    rgb, depth, card = _table_with_flat_object(height, 0.0)
+    masks = make_mask_generator("rgbd").generate(rgb, depth, K)
+    best = max(float((m.mask & card).sum() / (m.mask | card).sum()) for m in masks)
+    assert best >= 0.9, best
+
+
+def test_a_noisy_tables_plane_keeps_the_ransac_distance_and_few_inliers_fall_back():
+    from rg_core.perception.masks.rgbd import RGBDMaskConfig, _refit
+
+    cfg = RGBDMaskConfig()
+    u, v = np.meshgrid(np.arange(320), np.arange(240))
+    for noise, want in ((0.0, cfg.plane_min_distance), (0.003, cfg.plane_distance), (0.0005, 4 * 0.0005)):
+        _, depth, _ = _table_with_flat_object(0.0, noise, seed=1)
+        z = depth.astype(np.float64)
+        pts = np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], -1)
+        dist0 = np.abs(z - 0.6)
+        dist, reach = _refit(pts, dist0, dist0 < cfg.plane_distance, cfg)
+        assert reach == pytest.approx(want, rel=0.15), (noise, reach)
+        assert np.isfinite(dist).all() and np.median(dist) < max(noise, 1e-4)
+    few = np.zeros((240, 320), bool)
+    few[0, :2] = True
+    dist, reach = _refit(pts, dist0, few, cfg)
+    assert reach == cfg.plane_distance and dist is dist0

@@ -242,6 +242,31 @@ def test_support_ordinals_heights_and_all_over_a_built_graph():
     assert r.success and "2 'table' in the map: relating to the most certain (0.90)" in r.explanation
 
 
+def test_what_an_anchor_rests_on_is_not_beside_it():
+    """A table top's map can hold the table as an object (under a wrong name, as offline names go):
+    'the object closest to the scissors' is then not the table the scissors lie on."""
+    table = obj("lamp", "brown", (-0.6, -0.4, 0.70), (0.6, 0.4, 0.75))       # the table, misnamed
+    scissors = obj("scissors", "black", (0.0, 0.0, 0.75), (0.15, 0.06, 0.76))
+    cup = obj("orange cup", "orange", (0.3, 0.0, 0.75), (0.38, 0.08, 0.85))
+    spoon = obj("spoon", "grey", (-0.4, 0.2, 0.75), (-0.2, 0.3, 0.76))
+    peach = obj("peach", "orange", (-0.35, 0.22, 0.755), (-0.3, 0.27, 0.8))    # sunk into the spoon's box
+    objs = [table, scissors, cup, spoon, peach]
+    for q in ("the object closest to the scissors", "the object right of the scissors",
+              "the thing next to the scissors", "what is between the scissors and the orange cup"):
+        r = _ask(q, objs)
+        if "between" in q:
+            assert r.target != "lamp", (q, r.message)
+            continue
+        assert r.success and r.target == "orange cup", (q, r.message)
+        assert "'lamp' left out: 'scissors' rests on it" in r.explanation, r.explanation
+    assert _ask("the object under the scissors", objs).target == "lamp"     # asked for: it is what lies under
+    r = _ask("the object closest to the peach", objs)                       # one thing on it: not a surface
+    assert r.target == "spoon" and "'spoon' left out" not in r.explanation, r.explanation
+    assert _ask("the object closest to the scissors", objs[:3]).target == "lamp"   # holding two: not a surface
+    r = _ask("how many things are near the lamp", objs)                     # the table as the anchor: unchanged
+    assert r.success and len(r.objects) >= 1
+
+
 def test_on_the_table_without_a_table_in_the_map_means_on_no_other_object():
     """A table top's map rarely holds the table as an object: "on the table" then counts what rests
     on a surface rather than on another object, and says so; another missing anchor is still an error."""

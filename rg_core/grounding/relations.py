@@ -23,6 +23,7 @@ from .phrases import Relational, _nth, _singular, core_name, is_thing_name
 from .result import GroundedObject, GroundingResult
 
 NEAR_GAP = 0.10        # metres between two objects' boxes that still count as near (counting, "all")
+SURFACE_HOLDS = 3      # objects resting on a graph object that make it a surface, not a thing beside them
 SAME_OBJECT = 0.5      # answers sharing this share of the smaller one's Gaussians are one object
 MIN_GAUSSIANS = 5      # fewer Gaussians are a speck, not an object
 # Supports a map rarely holds as an object (a plane under everything): "on the table" without a
@@ -196,6 +197,15 @@ def _vertical(rel: str, t: _Geometry, a: _Geometry, sunk: bool = True) -> bool:
     return t.top <= a.middle   # under
 
 
+def _supports(base: _Geometry, t: _Geometry, ratio: float = 4.0) -> bool:
+    """`t` rests on `base` as on a surface: on it, inside its footprint, and `base` spans at least
+    `ratio` x its footprint (a table under a cup). A surface holds SURFACE_HOLDS such objects: a
+    long spoon's box can hold a peach beside it, not three things."""
+    area = lambda g: float(np.prod(np.maximum(g.hi - g.lo, 1e-3)))    # noqa: E731 - footprint (m2)
+    inside = bool(np.all(t.lo >= base.lo - 0.02) and np.all(t.hi <= base.hi + 0.02))
+    return inside and area(base) >= ratio * area(t) and _vertical("on", t, base)
+
+
 def _box_gap(a: SceneObject, b: SceneObject) -> float:
     """Distance between two axis-aligned boxes (0 when they overlap)."""
     amin, amax, bmin, bmax = (np.asarray(v, np.float64) for v in (a.obj.aabb_min, a.obj.aabb_max,
@@ -279,6 +289,13 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
     ref = [f[0] for _, f in anchors]
     point = (ref[0].centre + ref[1].centre) / 2 if rq.relation == "between" else ref[0].centre if ref else None
     where = ""
+    if ref and rq.relation not in ("on", "above", "under"):   # the surface an anchor rests on is not beside it
+        base = [o for o in cands if any(_supports(G(o), G(r)) for r in ref)
+                and sum(_supports(G(o), G(x)) for x in objs if x is not o) >= SURFACE_HOLDS]
+        if base:
+            cands = [o for o in cands if all(o is not b for b in base)]
+            notes.append(f"{', '.join(repr(b.name) for b in base)} left out: {' and '.join(repr(r.name) for r in ref)} "
+                         f"rest{'s' if len(ref) == 1 else ''} on it")
     if on_surface:   # the support itself is not an object of the map: standing on top of no other object
         cands = [o for o in cands if not any(x is not o and _vertical("on", G(o), G(x), sunk=False) for x in objs)]
         where = f" on the {rq.anchors[0]}"

@@ -30,7 +30,9 @@ class RGBDMaskConfig:
     depth_jump_rel: float = 0.02      # neighbours further apart than this x depth (+ 5 mm) are cut
     normal_crease_deg: tuple[float, float, float] = (180.0, 40.0, 30.0)  # per level 2, 1, 0
     color_edge: tuple[float, float, float] = (1e9, 28.0, 14.0)          # Lab distance, per level 2, 1, 0
-    plane_distance: float = 0.008     # RANSAC inlier distance (m)
+    plane_distance: float = 0.008     # RANSAC inlier distance (m), and the most a plane keeps
+    plane_sigmas: float = 4.0         # ... at most this x the plane's own residual scale (robust sigma)
+    plane_min_distance: float = 0.002  # ... and at least this (m)
     max_planes: int = 2
     min_plane_fraction: float = 0.08  # a plane must hold this fraction of valid pixels
     min_area: float = 0.001           # masks smaller than this fraction of the image are dropped
@@ -69,7 +71,8 @@ def _planes(pts: np.ndarray, valid: np.ndarray, cfg: RGBDMaskConfig, rng_seed: i
         model, _ = pc.segment_plane(cfg.plane_distance, 3, 200)
         a, b, c, d = model
         dist = np.abs(pts.reshape(-1, 3) @ np.array([a, b, c]) + d).reshape(valid.shape)
-        plane = remaining & (dist < cfg.plane_distance)
+        dist, reach = _refit(pts, dist, remaining & (dist < cfg.plane_distance), cfg)
+        plane = remaining & (dist < reach)
         if plane.sum() < cfg.min_plane_fraction * n_valid:
             break
         # Keep the plane's largest connected region (a wall and a table can share a plane).
@@ -80,6 +83,24 @@ def _planes(pts: np.ndarray, valid: np.ndarray, cfg: RGBDMaskConfig, rng_seed: i
         out.append(plane)
         remaining &= ~plane
     return out
+
+
+def _refit(pts: np.ndarray, dist: np.ndarray, inliers: np.ndarray, cfg: RGBDMaskConfig) -> tuple[np.ndarray, float]:
+    """(distance [H, W] of every pixel to the least-squares plane of the RANSAC inliers, the reach
+    within which a pixel joins that plane): plane_sigmas x the inliers' robust residual sigma,
+    between plane_min_distance and plane_distance. A clean sensor's table then leaves a fork or a
+    knife lying on it (4-15 mm high) to the objects; a noisy sensor's keeps the RANSAC distance.
+    Fewer than 3 inliers: RANSAC's own `dist` [H, W] and distance."""
+    if int(inliers.sum()) < 3:
+        return dist, cfg.plane_distance
+    P = pts[inliers]                                                   # [I, 3]
+    P = P[:: max(1, len(P) // 20000)]
+    c = P.mean(0)
+    n = np.linalg.svd(P - c, full_matrices=False)[2][2]               # the least-squares normal
+    r = (P - c) @ n
+    sigma = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    reach = float(np.clip(cfg.plane_sigmas * sigma, cfg.plane_min_distance, cfg.plane_distance))
+    return np.abs((pts - c) @ n), reach
 
 
 def _segments(keep: np.ndarray, cut_right: np.ndarray, cut_down: np.ndarray) -> np.ndarray:
