@@ -137,15 +137,13 @@ class PhotoMapConfig:
     1.5 (cameras a few mm apart at a metre still give depth within ~20 %)."""
     densify_from: Annotated[int, Interval(ge=0)] = 100
     densify_until: Annotated[float, Interval(ge=0.0, le=1.0)] = 0.5
-    """Adaptive density control runs from step densify_from to this share of `iters` (from 100, not
-    300: a 1000-step fit densifies 5 times, not 3, and holds 2x the Gaussians; bench_photo test PSNR
-    +1.2 / +1.3 dB on seeds 801 / 802)."""
+    """Adaptive density control runs from step densify_from to this share of `iters` (from 100, so a
+    short fit densifies often enough to resolve a table top)."""
     densify_every: Annotated[int, Interval(ge=1)] = 100
     grad_threshold: Annotated[float, Interval(gt=0.0)] = 0.0001
     """Mean view-space positional gradient (NDC units, as 3DGS) above which a Gaussian is cloned
-    (small) or split (large). Half 3DGS's 0.0002: a 1000-step fit of 17 views holds ~9-10k Gaussians,
-    not 5-6k (bench_photo, photo fit alone: test PSNR +0.15 / +0.18 / +0.36 dB, rendered depth error
-    42 -> 21 / 35 -> 26 / 169 -> 160 mm on seeds 801 / 802 / ycbv_0002)."""
+    (small) or split (large). Half 3DGS's 0.0002: fits of a few thousand steps densify less often
+    than 3DGS's 30k, and the rendered depth feeds the physical scales (docs/pipeline.md)."""
     dense_share: Annotated[float, Interval(gt=0.0, lt=1.0)] = 0.01
     """Small / large: largest axis below / above this share of the scene extent."""
     prune_opacity: Annotated[float, Interval(ge=0.0, lt=1.0)] = 0.005
