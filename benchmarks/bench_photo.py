@@ -179,7 +179,7 @@ def run_scene(key: str, path: Path, kind: str, args, profile: bool) -> dict:
     photo = withhold_depth(rgbd, args.points)
     R: dict = {"scene": key, "kind": kind, "train_views": len(rgbd.train), "test_views": len(rgbd.test),
                "objects": len(rgbd.objects), "init": f"{len(photo.points.xyz)} points" if photo.points is not None
-               else f"{cfg.photo.init_random} random", "photo_iters": cfg.photo.iters}
+               else "no points: triangulated at the poses, else random", "photo_iters": cfg.photo.iters}
     t0 = time.perf_counter()
     r, m = build_and_score(rgbd, rgbd, cfg, sup)
     R["rgbd"] = r
@@ -262,7 +262,7 @@ FIGURES = [
     ("rgbd.psnr_db", "test PSNR (dB), RGB-D map", None, "", None),
     ("photo.psnr_db", "test PSNR (dB), photo map", None, "", None),
     ("psnr_gap_db", "PSNR: photo - RGB-D (dB)", lambda v: v >= -PSNR_GAP_DB, f">= -{PSNR_GAP_DB}", None),
-    ("photo.heldout_psnr_db", "photo fit: held-out views' PSNR at the stop decision (dB)", None, "", None),
+    ("photo.heldout_psnr_db", "photo fit: held-out views' PSNR, decision (dB)", None, "", None),
     ("photo.depth_error_median_mm", "photo map depth vs sensor, median (mm)", None, "", None),
     ("rgbd.explicit_miou", "explicit visible mIoU, RGB-D", None, "", None),
     ("photo.explicit_miou", "explicit visible mIoU, photo", None, "", None),
