@@ -174,6 +174,9 @@ def run_scene(key: str, path: Path, kind: str, args, profile: bool) -> dict:
     cfg = RGConfig()
     if args.photo_iters:
         cfg.photo = dataclasses.replace(cfg.photo, iters=args.photo_iters)
+    for kv in args.photo_set or ():
+        k, _, v = kv.partition("=")
+        cfg.photo = dataclasses.replace(cfg.photo, **{k: type(getattr(cfg.photo, k))(v)})
     sup = args.supervision
     rgbd = read_scene(path)
     photo = withhold_depth(rgbd, args.points)
@@ -382,6 +385,8 @@ def main() -> int:
     ap.add_argument("--photo-iters", type=int, default=PHOTO_ITERS,
                     help=f"photo.iters, the fit's step ceiling (0: the config's own, 7000: hours on 2 cores); "
                          f"default {PHOTO_ITERS}: the default run takes 20-60 min on a busy 2-core CPU")
+    ap.add_argument("--photo-set", action="append", metavar="KEY=VALUE",
+                    help="a photo-fit setting of every photo build (config photo.KEY), e.g. depth_smoothness=0.1")
     ap.add_argument("--points", type=int, default=1500, help="sparse points kept of a synthetic scene's points3d.ply")
     ap.add_argument("--supervision", default="oracle", choices=("oracle", "default"))
     ap.add_argument("--work", help="keep scenes here (default: a temporary folder)")

@@ -18,7 +18,8 @@ from rg_core.io.captures import read_scene
 from rg_core.io.ply import read_ply
 from rg_core.map.frames import prepare_frame
 from rg_core.map.gaussians import PARAMS
-from rg_core.map.photo_fit import PhotoFitter, PhotoView, gaussians_from_points, initial_points, rendered_depth, ssim
+from rg_core.map.photo_fit import (PhotoFitter, PhotoView, depth_smoothness, gaussians_from_points, initial_points,
+                                   rendered_depth, ssim)
 
 WIDTH = 80
 
@@ -150,6 +151,33 @@ def test_ssim_of_equal_images_is_one_and_drops_with_noise():
     b = (a + 0.2 * torch.randn(40, 50, 3, generator=torch.Generator().manual_seed(1))).clamp(0, 1)
     assert float(ssim(a, b)) < 0.9
     assert math.isfinite(float(ssim(torch.zeros(8, 8, 3), torch.zeros(8, 8, 3))))   # smaller than the window
+
+
+def test_depth_smoothness_follows_the_photo_and_stays_finite():
+    flat, ones = torch.full((20, 30), 0.8), torch.ones(20, 30)
+    grey = torch.full((20, 30, 3), 0.5)
+    assert float(depth_smoothness(flat, ones, grey)) == 0.0
+    step = flat.clone()
+    step[:, 15:] = 1.2                                               # a depth jump along column 15
+    edge = grey.clone()
+    edge[:, 15:] = 0.9                                               # ... where the photo has an edge
+    at_edge, in_plain = float(depth_smoothness(step, ones, edge)), float(depth_smoothness(step, ones, grey))
+    assert 0 < at_edge < 0.05 * in_plain                             # a jump at a colour edge costs ~nothing
+    assert float(depth_smoothness(step * 1000, ones, grey)) == pytest.approx(in_plain, rel=1e-4)   # relative to depth
+    d = step.clone().requires_grad_(True)
+    depth_smoothness(d, ones, grey).backward()
+    assert torch.isfinite(d.grad).all() and float(d.grad.abs().sum()) > 0
+    for alpha in (torch.zeros(20, 30), torch.full((20, 30), 0.3)):   # nothing opaque: no term, no NaN
+        assert float(depth_smoothness(step, alpha, grey)) == 0.0
+    tiny = torch.full((20, 30), 1e-9)
+    assert math.isfinite(float(depth_smoothness(tiny, ones, grey)))
+
+
+def test_depth_smoothness_term_trains_and_stays_finite(scene):
+    cfg = dataclasses.replace(CFG, iters=60, depth_smoothness=0.5, holdout_views=0.0)
+    fitter = PhotoFitter([v for v, _ in scene["train"]], cfg, points=scene["points"], colors=scene["colors"])
+    fit = fitter.fit(progress=False)
+    assert fit.steps == 60 and all(bool(torch.isfinite(t).all()) for t in fit.gaussians.tensors().values())
 
 
 # ------------------------------------------------------------------------------ the scene without depth, end to end

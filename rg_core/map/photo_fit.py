@@ -131,6 +131,21 @@ def gaussians_from_points(points: np.ndarray, colors: np.ndarray, init_opacity: 
     return g
 
 
+def depth_smoothness(depth: torch.Tensor, alpha: torch.Tensor, rgb: torch.Tensor, edge: float = 10.0) -> torch.Tensor:
+    """Edge-aware smoothness of a rendered depth [H, W] (expected depth, alpha [H, W]) against the
+    photo it should follow (rgb [H, W, 3] in [0, 1]): the mean over neighbouring pixels, both
+    covered, of |depth step| x exp(-edge x |colour step|), relative to the median depth. Depth may
+    jump where the colour does; elsewhere photos with little parallax say nothing about it, and
+    this keeps their surfaces whole instead of scattered along the rays."""
+    scale = depth[alpha > 0.5].median().detach() if bool((alpha > 0.5).any()) else depth.new_tensor(1.0)
+    terms = []
+    for a, b, ia, ib, pa, pb in ((depth[:, 1:], depth[:, :-1], rgb[:, 1:], rgb[:, :-1], alpha[:, 1:], alpha[:, :-1]),
+                                 (depth[1:], depth[:-1], rgb[1:], rgb[:-1], alpha[1:], alpha[:-1])):
+        w = torch.exp(-edge * (ia - ib).abs().mean(-1)) * ((pa > 0.5) & (pb > 0.5))
+        terms.append(((a - b).abs() * w).sum() / w.sum().clamp(min=1.0))
+    return (terms[0] + terms[1]) / scale.clamp(min=1e-6)
+
+
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """SSIM of two images [H, W, 3] in [0, 1] (pytorch_msssim, 11 px Gaussian window, sigma 1.5)."""
     from pytorch_msssim import ssim as _ssim
@@ -191,6 +206,8 @@ class PhotoFitter:
             m2d.retain_grad()
         l1 = (rgb - v.rgb).abs().mean()
         loss = (1 - c.lambda_dssim) * l1 + c.lambda_dssim * (1 - ssim(rgb, v.rgb))
+        if c.depth_smoothness > 0:
+            loss = loss + c.depth_smoothness * depth_smoothness(out.depth, out.alpha, v.rgb)
         loss.backward()
         decay = 0.01 ** min(1.0, it / max(c.iters, 1))                 # 3DGS: exponential to 1 %
         self.optim.lrs["means"] = c.lr_means * self.extent * decay
