@@ -141,7 +141,8 @@ def step_profile(mapper, scene, cfg, n: int = 8) -> dict:
     import torch
 
     from rg_core.map.frames import map_camera
-    from rg_core.map.photo_fit import photo_view, ssim
+    from rg_core.map.photo_fit import photo_view
+    from rg_core.map.photo_losses import ssim
     from rg_core.render.rasterize import rasterize
 
     v = photo_view(scene.train[0], cfg.map.width)

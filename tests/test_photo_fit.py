@@ -18,8 +18,8 @@ from rg_core.io.captures import read_scene
 from rg_core.io.ply import read_ply
 from rg_core.map.frames import prepare_frame
 from rg_core.map.gaussians import PARAMS
-from rg_core.map.photo_fit import (PhotoFitter, PhotoView, depth_smoothness, gaussians_from_points, initial_points,
-                                   rendered_depth, ssim)
+from rg_core.map.photo_fit import PhotoFitter, PhotoView, gaussians_from_points, initial_points, rendered_depth
+from rg_core.map.photo_losses import depth_smoothness, ssim
 
 WIDTH = 80
 

@@ -128,7 +128,7 @@ class PhotoMapConfig:
     lambda_dssim: Annotated[float, Interval(ge=0.0, le=1.0)] = 0.2
     """Loss = (1 - lambda) L1 + lambda (1 - SSIM), 3DGS's weighting."""
     depth_smoothness: Annotated[float, Interval(ge=0.0)] = 0.0
-    """Weight of the edge-aware smoothness of the rendered depth (photo_fit.depth_smoothness):
+    """Weight of the edge-aware smoothness of the rendered depth (map/photo_losses.depth_smoothness):
     captures with little parallax leave depth free along the rays."""
     init_random: Annotated[int, Interval(ge=1)] = 5000
     """Gaussians drawn at random in the cameras' view volume when the scene has no sparse points."""
