@@ -11,13 +11,14 @@ def depth_smoothness(depth: torch.Tensor, alpha: torch.Tensor, rgb: torch.Tensor
     covered, of |depth step| x exp(-edge x |colour step|), relative to the median depth. Depth may
     jump where the colour does; elsewhere photos with little parallax say nothing about it, and
     this keeps their surfaces whole instead of scattered along the rays."""
-    scale = depth[alpha > 0.5].median().detach() if bool((alpha > 0.5).any()) else depth.new_tensor(1.0)
-    terms = []
-    for a, b, ia, ib, pa, pb in ((depth[:, 1:], depth[:, :-1], rgb[:, 1:], rgb[:, :-1], alpha[:, 1:], alpha[:, :-1]),
-                                 (depth[1:], depth[:-1], rgb[1:], rgb[:-1], alpha[1:], alpha[:-1])):
-        w = torch.exp(-edge * (ia - ib).abs().mean(-1)) * ((pa > 0.5) & (pb > 0.5))
-        terms.append(((a - b).abs() * w).sum() / w.sum().clamp(min=1.0))
-    return (terms[0] + terms[1]) / scale.clamp(min=1e-6)
+    opaque = alpha > 0.5
+    scale = depth[opaque].median().detach() if bool(opaque.any()) else depth.new_tensor(1.0)
+    total = depth.new_zeros(())
+    for d in (1, 0):   # horizontal, then vertical neighbours
+        n = depth.shape[d] - 1
+        w = torch.exp(-edge * torch.diff(rgb, dim=d).abs().mean(-1)) * (opaque.narrow(d, 1, n) & opaque.narrow(d, 0, n))
+        total = total + (torch.diff(depth, dim=d).abs() * w).sum() / w.sum().clamp(min=1.0)
+    return total / scale.clamp(min=1e-6)
 
 
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
