@@ -91,14 +91,15 @@ def mask_depth_offsets(depth: np.ndarray, masks: list[np.ndarray], reach: float 
 
 
 def registration_border(offsets: np.ndarray, max_px: int = 3, min_pixels: int = 50,
-                        registered_share: float = 0.25) -> int:
+                        registered_share: float = 0.15) -> int:
     """Mask growth (px) for the votes from mask-to-depth-edge offsets [n] (mask_depth_offsets).
 
     Registered colour and depth put a large share of the measured boundary pixels exactly on the
-    depth edge (synthetic renders: 49-56 %, also at 160 px where objects touching the table leave
-    the rest 1-5 px from some edge); a real sensor's misregistration puts few there (YCB-Video 0002:
-    6 %). So: 0 when at least `registered_share` of them are on the edge (offset < 0.5 px) or fewer
-    than min_pixels were measured; otherwise the median offset, rounded, between 1 and max_px."""
+    depth edge: synthetic renders 49-56 % with ground-truth masks, 23-28 % with the offline RGB-D
+    masks (their part-level boundaries lie near, not on, depth edges; seeds 11, 12, 701, room 13);
+    a real sensor's misregistration puts few there: 6-10 % (YCB-Video 0000 and 0002, either mask
+    source). So: 0 when at least `registered_share` of them are on the edge (offset < 0.5 px) or
+    fewer than min_pixels were measured; otherwise the median offset, rounded, between 1 and max_px."""
     o = np.asarray(offsets, np.float64).reshape(-1)
     o = o[np.isfinite(o)]
     if len(o) < min_pixels or float(np.mean(o < 0.5)) >= registered_share:
