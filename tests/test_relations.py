@@ -418,3 +418,41 @@ def test_llm_parse_option_falls_back_to_the_rules_when_the_model_is_unreachable(
         [o.gaussian_ids.tolist() for o in plain.objects]
     assert "openai parse unusable (connection failed" in r.explanation and "parsed by rules" in r.explanation, r.explanation
     assert "parse unusable" not in plain.explanation
+
+
+def test_a_misnamed_table_plane_is_not_one_of_the_things_on_it():
+    """Offline names can call the table's plane a thing ('clock'): holding three objects, it is a
+    surface, so 'the biggest object' is among the things on it and 'on the table' counts what rests
+    on it. A support named as one ('table') stays an object (the test above)."""
+    plane = obj("clock", "brown", (-0.6, -0.4, 0.70), (0.6, 0.4, 0.75))
+    things = [obj("phillips screwdriver", "yellow", (-0.4, 0.0, 0.75), (-0.2, 0.05, 0.79)),
+              obj("flat screwdriver", "red", (0.0, 0.0, 0.75), (0.12, 0.03, 0.77)),
+              obj("knife", "grey", (0.3, 0.0, 0.75), (0.5, 0.02, 0.76))]
+    objs = [plane, *things]
+    r = _ask("the biggest object", objs)
+    assert r.success and r.target == "phillips screwdriver", r.message
+    assert "'clock' left out" in r.explanation
+    r = _ask("how many screwdrivers are there on the table", objs)
+    assert r.success and len(r.objects) == 2, r.message
+    # with two things only on it, it is no surface: still the biggest
+    assert _ask("the biggest object", [plane, *things[:2]]).target == "clock"
+
+
+def test_generated_view_queries_ask_only_what_has_an_answer():
+    """The ground-truth generator: 'the first cup from the left' only when every cup is in front of
+    the camera (a bearing behind it has no left and right), and 'nearest' answers only when the
+    runner-up is farther by the answerer's tie share, not just 3 cm (at 2.6 m: 13 cm)."""
+    from rg_core.eval.relational import margin, queries
+
+    assert margin(0.2) == pytest.approx(0.03) and margin(2.6) == pytest.approx(0.13)
+
+    def scene(ys):
+        objs = [SimpleNamespace(id=i + 1, name=n, aabb_min=np.array([x, y, 0.0]), aabb_max=np.array([x + 0.08, y + 0.08, 0.1]))
+                for i, (n, x, y) in enumerate(zip(["red cup", "blue cup", "green cup"], [-0.5, 0.0, 0.5], ys))]
+        return SimpleNamespace(objects=objs)
+
+    K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    ordinals = lambda ys: [q for q in queries(scene(ys), np.random.default_rng(0), {}, _camera(), K)   # noqa: E731
+                           if q["kind"] == "ordinal"]
+    assert ordinals([0.0, 0.0, 0.0])
+    assert not ordinals([0.0, 0.0, -3.0]), "the green cup lies behind the camera"

@@ -7,7 +7,16 @@ from __future__ import annotations
 
 import numpy as np
 
-MARGIN = 0.03          # metres between the expected answer and the runner-up
+MARGIN = 0.03          # metres between the expected answer and the runner-up (at least)
+
+
+def margin(d: float) -> float:
+    """How far (m) the runner-up must be behind an expected answer at distance `d`: MARGIN, or the
+    answerer's tie share of d where that is more (grounding/relations.py: a tie is no answer, so a
+    question whose best two lie within it has none to expect)."""
+    from ..grounding.relations import TIE_SHARE
+
+    return max(MARGIN, TIE_SHARE * d)
 CATEGORIES = {"cup": "cups", "fruit": "fruits", "screwdriver": "screwdrivers", "bowl": "bowls", "tool": "tools"}
 ORDINAL = {1: "first", 2: "second", 3: "third"}
 # Hand-written phrasings ({a}, {b}: anchor names; {c}: category, {cs}: its plural; {k}: colour term),
@@ -85,7 +94,7 @@ def queries(scene, rng, colours: dict[str, str], cam: np.ndarray, K: np.ndarray)
     names = sorted(c)
     w2c = np.linalg.inv(cam)
     pc = {n: w2c[:3, :3] @ c[n] + w2c[:3, 3] for n in names}
-    ux = {n: float(pc[n][0] / pc[n][2]) for n in names}          # image x / focal length
+    ux = {n: float(np.arctan2(pc[n][0], pc[n][2])) for n in names}   # bearing from the camera (rad), left to right
     cats = {k: sorted(n for n in names if _is_a(n, k)) for k in CATEGORIES}
     gen: dict[str, list[dict]] = {}
 
@@ -94,7 +103,7 @@ def queries(scene, rng, colours: dict[str, str], cam: np.ndarray, K: np.ndarray)
 
     def nearest(point, pool, exclude):
         d = sorted((float(np.linalg.norm(c[n] - point)), n) for n in pool if n not in exclude)
-        return d[0][1] if d and (len(d) == 1 or d[1][0] - d[0][0] >= MARGIN) else None
+        return d[0][1] if d and (len(d) == 1 or d[1][0] - d[0][0] >= margin(d[0][0])) else None
 
     for a in names:
         e = nearest(c[a], names, {a})
@@ -124,7 +133,7 @@ def queries(scene, rng, colours: dict[str, str], cam: np.ndarray, K: np.ndarray)
         if ext[by_h[-1]][2] >= 1.3 * ext[by_h[-2]][2]:
             add("superlative", f"the tallest {label}", by_h[-1], c=label, which="tallest")
         d = sorted((float(np.linalg.norm(pc[n])), n) for n in pool)
-        if d[1][0] - d[0][0] >= MARGIN:
+        if d[1][0] - d[0][0] >= margin(d[0][0]):
             add("superlative", f"the {label} nearest to the camera", d[0][1], c=label, which="nearest")
     for k, pool in cats.items():
         if pool:
@@ -137,7 +146,7 @@ def queries(scene, rng, colours: dict[str, str], cam: np.ndarray, K: np.ndarray)
                     add("colour", f"the {t} {k}", n, c=k, k=t)
             order = sorted(pool, key=lambda n: ux[n])
             gaps = np.diff([ux[n] for n in order])
-            if gaps.min() >= 0.05:
+            if gaps.min() >= 0.05 and all(pc[n][2] > 0 for n in pool):   # "from the left": of things in view
                 for i in range(min(len(order), 3)):
                     add("ordinal", f"the {ORDINAL[i + 1]} {k} from the left", order[i], c=k, order=order)
                 add("ordinal", f"the first {k} from the right", order[-1], c=k, order=order)

@@ -206,6 +206,11 @@ def _supports(base: _Geometry, t: _Geometry, ratio: float = 4.0) -> bool:
     return inside and area(base) >= ratio * area(t) and _vertical("on", t, base)
 
 
+def _is_surface(o: SceneObject, objs: list[SceneObject], G) -> bool:
+    """`o` holds SURFACE_HOLDS or more of the other objects resting on it as on a surface (_supports)."""
+    return sum(_supports(G(o), G(x)) for x in objs if x is not o) >= SURFACE_HOLDS
+
+
 def _box_gap(a: SceneObject, b: SceneObject) -> float:
     """Distance between two axis-aligned boxes (0 when they overlap)."""
     amin, amax, bmin, bmax = (np.asarray(v, np.float64) for v in (a.obj.aabb_min, a.obj.aabb_max,
@@ -290,14 +295,22 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
     point = (ref[0].centre + ref[1].centre) / 2 if rq.relation == "between" else ref[0].centre if ref else None
     where = ""
     if ref and rq.relation not in ("on", "above", "under"):   # the surface an anchor rests on is not beside it
-        base = [o for o in cands if any(_supports(G(o), G(r)) for r in ref)
-                and sum(_supports(G(o), G(x)) for x in objs if x is not o) >= SURFACE_HOLDS]
+        base = [o for o in cands if any(_supports(G(o), G(r)) for r in ref) and _is_surface(o, objs, G)]
         if base:
             cands = [o for o in cands if all(o is not b for b in base)]
             notes.append(f"{', '.join(repr(b.name) for b in base)} left out: {' and '.join(repr(r.name) for r in ref)} "
                          f"rest{'s' if len(ref) == 1 else ''} on it")
-    if on_surface:   # the support itself is not an object of the map: standing on top of no other object
-        cands = [o for o in cands if not any(x is not o and _vertical("on", G(o), G(x), sunk=False) for x in objs)]
+    # a graph object holding others under a name no support has: a table's plane the 2D models named as a thing
+    surf = [o for o in objs if _is_surface(o, objs, G) and not any(_is_a(o.name, w) for w in SURFACES)]
+    if surf and (on_surface or (rq.superlative and not rq.target)):
+        kept = [o for o in cands if all(o is not x for x in surf)]
+        if len(kept) < len(cands):
+            notes.append(f"{', '.join(repr(x.name) for x in surf)} left out: a surface holding "
+                         f"{SURFACE_HOLDS} or more objects, not one of them")
+        cands = kept
+    if on_surface:   # the support itself is not an object of the map: standing on top of no other object but a surface
+        cands = [o for o in cands if not any(x is not o and all(x is not y for y in surf)
+                                             and _vertical("on", G(o), G(x), sunk=False) for x in objs)]
         where = f" on the {rq.anchors[0]}"
         if not cands and not rq.count:
             res.message = f"no {what!r}{where}"
@@ -320,7 +333,7 @@ def answer(rq: Relational, objs: list[SceneObject], cam_to_world: np.ndarray, ca
             res.message = f"no {what!r}{where}"
             res.explanation = "; ".join([rq.describe(), f"no {what!r}{where}"] + notes) + "."
             return res
-    side_x = lambda o: float(cam(o.centre)[0] / max(cam(o.centre)[2], 1e-6))      # noqa: E731 - image-plane x
+    side_x = lambda o: float(np.arctan2(cam(o.centre)[0], cam(o.centre)[2]))      # noqa: E731 - bearing, left to right
     tied, tie = 1, ""   # how many lead the ranking within its tie tolerance (TIE_*), and that tolerance
     if rq.count or rq.every:
         chosen = sorted(cands, key=side_x)
