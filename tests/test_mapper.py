@@ -547,3 +547,32 @@ def test_map_renders_antialiased_and_older_maps_classic(mapped, synth_scene, tmp
     del data["config"]["antialiased"]
     torch.save(data, path)
     assert not load_map(path).cfg.antialiased
+
+
+def test_lineage_ids_follow_append_split_clone_keep_and_saving():
+    """GaussianModel.uids: new per appended Gaussian, passed on to split children and clones, kept
+    by `keep`, saved and loaded; a map saved before them loads with new ones."""
+    import torch
+
+    from rg_core.map.gaussians import GaussianModel
+
+    g = GaussianModel()
+    g.append(torch.zeros(3, 3), torch.full((3,), 0.01), torch.zeros(3, 3), 0.5)
+    g.append(torch.ones(2, 3), torch.full((2,), 0.01), torch.zeros(2, 3), 0.5)
+    assert g.uids.tolist() == [0, 1, 2, 3, 4] and g.next_uid == 5
+    g.split(torch.tensor([1]), generator=torch.Generator().manual_seed(0))
+    assert g.uids.tolist() == [0, 2, 3, 4, 1, 1] and len(g.uids) == len(g)
+    g.duplicate(torch.tensor([0]))
+    g.keep(torch.tensor([False, True, True, True, True, True, True]))
+    assert g.uids.tolist() == [2, 3, 4, 1, 1, 0]
+    g.append(torch.zeros(1, 3), torch.full((1,), 0.01), torch.zeros(1, 3), 0.5)
+    assert g.uids.tolist()[-1] == 5, "an id never comes back, even after its Gaussian went"
+    h = GaussianModel()
+    h.load_state_dict(g.state_dict())
+    assert h.uids.tolist() == g.uids.tolist() and h.next_uid == g.next_uid
+    old = {k: v for k, v in g.state_dict().items() if k not in ("uids", "next_uid")}
+    h.load_state_dict(old)
+    assert h.uids.tolist() == list(range(len(g))) and h.next_uid == len(g)
+    bad = dict(g.state_dict(), uids=torch.zeros(2, dtype=torch.long))
+    with pytest.raises(ValueError, match="uids"):
+        h.load_state_dict(bad)

@@ -178,6 +178,31 @@ def test_persistence_across_save_load_frames_and_eviction(taught, synth_scene, t
     assert evicted > 0
     res = g2.ground("my mug")
     assert res.success and view_iou(g2, synth_scene, res, "orange cup") >= 0.7, res.message
+    # the same Gaussians (by lineage) as when taught, those that refinement and eviction left
+    t = next(t for t in m.taught if t.name == "blue mug")
+    lineage = np.flatnonzero(np.isin(m.gaussians.uids.numpy(), t.uids))
+    assert np.array_equal(np.sort(res.objects[0].gaussian_ids), lineage)
+
+
+def test_a_taught_group_with_too_few_survivors_is_found_again_at_its_point(minilm_map_file, clicks):
+    """Lineage first; when fewer than KEEP_SHARE of the group's Gaussians are left (a map pruned
+    hard, reseeded), the object is found again at its point and scale and its lineage taken from there."""
+    import torch
+
+    from rg_core.grounding import teach
+
+    g = fresh(minilm_map_file)
+    t, a = teach.teach(g, "blue mug", point=clicks["orange cup"].point)
+    ids = np.sort(a.objects[0].gaussian_ids)
+    assert len(ids) >= 10 and np.array_equal(teach.resolve(g, t).gaussian_ids, ids)
+    gs = g.mapper.gaussians
+    gs.uids = gs.uids.clone()
+    gs.uids[torch.from_numpy(ids[: int(0.7 * len(ids))])] = gs.next_uid   # 70 % of the mug reseeded
+    gs.next_uid += 1
+    g.cache.clear()
+    again = teach.resolve(g, t)
+    assert overlap(again.gaussian_ids, ids) >= 0.9, "found again at its point: the mug, not its 30 % left"
+    assert set(t.uids.tolist()) == set(np.unique(gs.uids.numpy()[again.gaussian_ids]).tolist())
 
 
 @pytest.mark.parametrize("name, match", [("", "empty name"), ("x" * 65, "65 characters"),

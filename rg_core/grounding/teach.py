@@ -28,6 +28,7 @@ RELABEL_IOU = 0.5          # a keyframe mask this like the object's visible mask
 ADD_BELOW_IOU = 0.8        # with no mask this like it, the visible mask itself joins the keyframe's
 MIN_PIXELS = 30            # fewer visible pixels: the keyframe does not see the object
 PCA_RESIDUAL = 0.25        # a taught embedding the basis reconstructs worse than this refits it
+KEEP_SHARE = 0.5           # of a taught group's Gaussians (when last found) left: still the object by lineage
 
 
 def _plural(query: str) -> bool:
@@ -40,23 +41,28 @@ def _plural(query: str) -> bool:
 # ------------------------------------------------------------------------------ finding taught objects
 
 def resolve(g, t: TaughtObject) -> GroundedObject:
-    """The taught object's group in the map as it is now (cached with the map): found again at its
-    point and scale; its record follows (box, feature, count), so eviction keeps protecting it."""
+    """The taught object's group in the map as it is now (cached with the map): the Gaussians of its
+    lineage (t.uids) while at least KEEP_SHARE of those it had when last found are left, else found
+    again at its point and scale (and the lineage taken from that group); its record follows (box,
+    feature, count, lineage), so eviction keeps protecting it."""
     key = (id(t), t.name, tuple(np.round(t.point, 5)), round(float(t.scale), 5))
+    gs = g.mapper.gaussians
 
     def make():
-        try:
-            obj = object_at(g, t.point, scale=t.scale)[0]
-        except ValueError:   # nothing within reach of the point any more: what is left in its box
-            means = g.mapper.gaussians.means.detach().numpy()
-            ids = np.flatnonzero(np.all((means >= t.lo - 0.01) & (means <= t.hi + 0.01), 1))
-            if not len(ids):
-                raise ValueError(f"the taught {t.name!r} is no longer in the map (nothing near "
-                                 "({:.3f}, {:.3f}, {:.3f}))".format(*t.point)) from None
-            from .boxes import group_boxes
-
-            cols = (g.mapper.gaussians.colors.detach()[torch.from_numpy(ids)].clamp(0, 1) * 255).round().byte().numpy()
-            obj = GroundedObject(ids, means[ids].astype(np.float32), cols, *group_boxes(means[ids]), 1.0)
+        ids = np.flatnonzero(np.isin(gs.uids.numpy(), t.uids)) if len(t.uids) else np.zeros(0, np.int64)
+        if len(ids) and len(ids) >= KEEP_SHARE * max(t.gaussians, 1):
+            obj = _group(gs, ids)
+        else:
+            try:
+                obj = object_at(g, t.point, scale=t.scale)[0]
+            except ValueError:   # nothing within reach of the point any more: what is left in its box
+                means = gs.means.detach().numpy()
+                ids = np.flatnonzero(np.all((means >= t.lo - 0.01) & (means <= t.hi + 0.01), 1))
+                if not len(ids):
+                    raise ValueError(f"the taught {t.name!r} is no longer in the map (nothing near "
+                                     "({:.3f}, {:.3f}, {:.3f}))".format(*t.point)) from None
+                obj = _group(gs, ids)
+            t.uids = np.unique(gs.uids.numpy()[obj.gaussian_ids])
         t.lo, t.hi, t.gaussians = np.asarray(obj.aabb_min), np.asarray(obj.aabb_max), len(obj.gaussian_ids)
         feats = g.field.gaussian_instance(t.scale, torch.from_numpy(obj.gaussian_ids))
         t.instance = torch.nn.functional.normalize(feats.mean(0), dim=-1).numpy()
@@ -64,6 +70,15 @@ def resolve(g, t: TaughtObject) -> GroundedObject:
         return obj
     g._check_cache()
     return g.cache.get("taught", key, make)
+
+
+def _group(gs, ids: np.ndarray) -> GroundedObject:
+    """A GroundedObject of the Gaussians ids [n] (their points, colours and boxes)."""
+    from .boxes import group_boxes
+
+    means = gs.means.detach().numpy()[ids].astype(np.float32)
+    cols = (gs.colors.detach()[torch.from_numpy(ids)].clamp(0, 1) * 255).round().byte().numpy()
+    return GroundedObject(ids, means, cols, *group_boxes(means), 1.0)
 
 
 def taught_at(g, obj: GroundedObject) -> list[TaughtObject]:
@@ -161,7 +176,8 @@ def teach(g, name: str, point=None, result: GroundingResult | None = None) -> tu
         rule = f"scale {scale:.3f} m: the scale of the answer it was taught from"
     feats = g.field.gaussian_instance(scale, torch.from_numpy(obj.gaussian_ids))
     t = TaughtObject(name, p, float(scale), np.asarray(obj.aabb_min), np.asarray(obj.aabb_max),
-                     torch.nn.functional.normalize(feats.mean(0), dim=-1).numpy(), rule, len(obj.gaussian_ids))
+                     torch.nn.functional.normalize(feats.mean(0), dim=-1).numpy(), rule, len(obj.gaussian_ids),
+                     uids=np.unique(g.mapper.gaussians.uids.numpy()[obj.gaussian_ids]))
     g.mapper.taught.add(t)
     apply(g)
     return t, answer(g, name)

@@ -16,7 +16,10 @@ GLOBALS = ("background",)  # shared by the whole map
 
 
 class GaussianModel:
-    """N Gaussians: means [N, 3], log_scales [N, 3], quats [N, 4], opacity_logits [N], colors [N, 3]."""
+    """N Gaussians: means [N, 3], log_scales [N, 3], quats [N, 4], opacity_logits [N], colors [N, 3],
+    and uids [N] int64: lineage ids, new for each appended Gaussian and passed on to its split
+    children and clones (what a taught object keeps of its group: the survivors of refinement,
+    pruning and eviction are still recognised). Not optimised, not in `tensors()`."""
 
     def __init__(self):
         self.means = torch.zeros(0, 3)
@@ -26,6 +29,8 @@ class GaussianModel:
         self.colors = torch.zeros(0, 3)
         # Colour seen where no Gaussian is (sky, beyond the depth range): learnt from those pixels.
         self.background = torch.zeros(3)
+        self.uids = torch.zeros(0, dtype=torch.long)
+        self.next_uid = 0
 
     def __len__(self) -> int:
         return self.means.shape[0]
@@ -53,6 +58,8 @@ class GaussianModel:
                "opacity_logits": torch.full((m,), math.log(o / (1 - o))), "colors": colors.float()}
         for k, v in new.items():
             setattr(self, k, torch.cat([getattr(self, k).detach(), v]))
+        self.uids = torch.cat([self.uids, torch.arange(self.next_uid, self.next_uid + m, dtype=torch.long)])
+        self.next_uid += m
 
     def split(self, idx: torch.Tensor, generator: torch.Generator | None = None, factor: float = 1.6) -> None:
         """Replace the Gaussians idx [M] by two each, drawn from the parent's own distribution, with
@@ -71,6 +78,7 @@ class GaussianModel:
         keep[idx] = False
         for k in PARAMS:
             setattr(self, k, torch.cat([getattr(self, k).detach()[keep], new[k].detach()]))
+        self.uids = torch.cat([self.uids[keep], self.uids[idx].repeat(2)])
 
     def duplicate(self, idx: torch.Tensor) -> None:
         """Append a copy of the Gaussians idx [M] (3D Gaussian Splatting's clone: the copy then
@@ -79,14 +87,17 @@ class GaussianModel:
         for k in PARAMS:
             t = getattr(self, k).detach()
             setattr(self, k, torch.cat([t, t[idx]]))
+        self.uids = torch.cat([self.uids, self.uids[idx]])
 
     def keep(self, mask: torch.Tensor) -> None:
         """Keep only Gaussians where mask [N] is True."""
         for k in PARAMS:
             setattr(self, k, getattr(self, k).detach()[mask])
+        self.uids = self.uids[mask]
 
     def state_dict(self) -> dict[str, torch.Tensor]:
-        return {k: v.detach().clone() for k, v in self.tensors().items()}
+        return {**{k: v.detach().clone() for k, v in self.tensors().items()}, "uids": self.uids.clone(),
+                "next_uid": torch.tensor(self.next_uid, dtype=torch.long)}
 
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
         n = state["means"].shape[0]
@@ -99,6 +110,11 @@ class GaussianModel:
             if tuple(t.shape) != expect:
                 raise ValueError(f"map file: gaussians.{k} has shape {list(t.shape)}, expected {list(expect)}")
             setattr(self, k, t.float().clone())
+        uids = state.get("uids")   # maps saved before lineage ids: new ones
+        if uids is not None and tuple(uids.shape) != (n,):
+            raise ValueError(f"map file: gaussians.uids has shape {list(uids.shape)}, expected [{n}]")
+        self.uids = uids.long().clone() if uids is not None else torch.arange(n, dtype=torch.long)
+        self.next_uid = max(int(state.get("next_uid", torch.tensor(0))), int(self.uids.max()) + 1 if n else 0)
 
 
 class ResizableAdam:

@@ -1,8 +1,10 @@
 """What people taught the map: a name for the object at a point ("this is my mug").
 
 A taught object keeps what finds it again after the map changed (new frames, refinement, pruning,
-eviction, a reload): the point a person showed, the object's physical scale, its box and its mean
-instance feature at that scale. Gaussian ids alone would not survive pruning or eviction.
+eviction, a reload): the lineage ids of its Gaussians (GaussianModel.uids: the survivors of
+refinement, pruning and eviction keep theirs, split children and clones their parent's), and for
+when too few of them are left, the point a person showed, the object's physical scale, its box and
+its mean instance feature at that scale.
 grounding/teach.py finds the object, relabels its masks and answers with it; this module only
 holds the records, checks names and saves them with the map (store.py).
 """
@@ -49,6 +51,7 @@ class TaughtObject:
     rule: str = ""               # how the scale was chosen (the answer's explanation says it)
     gaussians: int = 0           # its Gaussians when last found
     stamp: float = field(default_factory=time.time)
+    uids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))   # [G] its Gaussians' lineage ids
 
     @property
     def centre(self) -> np.ndarray:
@@ -110,7 +113,8 @@ class TaughtSet:
                              "scale": float(t.scale), "lo": torch.from_numpy(np.asarray(t.lo, np.float64)),
                              "hi": torch.from_numpy(np.asarray(t.hi, np.float64)),
                              "instance": torch.from_numpy(np.asarray(t.instance, np.float32)), "rule": t.rule,
-                             "gaussians": int(t.gaussians), "stamp": float(t.stamp)} for t in self.items],
+                             "gaussians": int(t.gaussians), "stamp": float(t.stamp),
+                             "uids": torch.from_numpy(np.asarray(t.uids, np.int64))} for t in self.items],
                 "version": int(self.version)}
 
     @staticmethod
@@ -119,6 +123,7 @@ class TaughtSet:
         for o in (d or {}).get("objects", []):
             s.items.append(TaughtObject(check_name(o["name"]), o["point"].numpy(), float(o["scale"]), o["lo"].numpy(),
                                         o["hi"].numpy(), o["instance"].numpy(), str(o.get("rule", "")),
-                                        int(o.get("gaussians", 0)), float(o.get("stamp", 0.0))))
+                                        int(o.get("gaussians", 0)), float(o.get("stamp", 0.0)),
+                                        o["uids"].numpy().astype(np.int64) if "uids" in o else np.zeros(0, np.int64)))
         s.version = int((d or {}).get("version", len(s.items)))
         return s

@@ -103,6 +103,7 @@ def resized_map(mapper: Mapper, field, n: int, seed: int = 0, tile: bool = False
     for k in ("log_scales", "quats", "opacity_logits", "colors"):
         setattr(m.gaussians, k, getattr(g, k).detach()[idx].clone())
     m.gaussians.means = g.means.detach()[idx] + jitter                           # [n, 3]
+    m.gaussians.uids, m.gaussians.next_uid = g.uids[idx].clone(), g.next_uid
     m.gaussians.background = g.background.detach().clone()
     m.keyframes, m.supervision = mapper.keyframes, mapper.supervision
     m.totals = dict(mapper.totals)
