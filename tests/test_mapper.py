@@ -576,3 +576,26 @@ def test_lineage_ids_follow_append_split_clone_keep_and_saving():
     bad = dict(g.state_dict(), uids=torch.zeros(2, dtype=torch.long))
     with pytest.raises(ValueError, match="uids"):
         h.load_state_dict(bad)
+
+
+def test_isolate_gives_a_group_lineage_ids_of_its_own():
+    """Siblings of a split that lie outside a group keep the old id; the group's carriers get a new
+    one (what a taught record then names is exactly its group); a shallow copy (a snapshot) draws
+    from the same counter."""
+    import copy
+
+    import torch
+
+    from rg_core.map.gaussians import GaussianModel
+
+    g = GaussianModel()
+    g.append(torch.zeros(3, 3), torch.full((3,), 0.01), torch.zeros(3, 3), 0.5)
+    g.split(torch.tensor([0]), generator=torch.Generator().manual_seed(0))   # uids [1, 2, 0, 0]
+    changed = g.isolate(torch.tensor([0, 2]))                                 # one child of 0 and 1
+    assert changed == {0: 3} and g.uids.tolist() == [1, 2, 3, 0] and g.next_uid == 4
+    assert g.isolate(torch.tensor([2])) == {}, "already its own"
+    snap = copy.copy(g)
+    snap.duplicate(torch.tensor([0]))                                        # its own tensors now
+    assert snap.isolate(torch.tensor([0])) == {1: 4} and len(g) == 4
+    g.append(torch.zeros(1, 3), torch.full((1,), 0.01), torch.zeros(1, 3), 0.5)
+    assert g.uids.tolist()[-1] == 5 and snap.next_uid == 6

@@ -439,3 +439,41 @@ def test_views_that_agree_keep_their_choice():
     covering = [(kf, 1, 2, 0.14) for kf in kfs]
     assert [c[1] for c in _agreeing(covering, sups, [np.arange(3)] * 3)] == [1, 1, 1]
     assert _agreeing(covering[:1], sups[:1], [np.arange(3)]) == covering[:1]
+
+
+def test_two_objects_named_apart_are_split_where_the_masks_joined_them():
+    """Two taught objects whose own groups are one blob (the 2D masks joined the touching objects in
+    every view) are cut along their colour edge, each keeping the Gaussians nearer its own point;
+    two names taught at one place (within SAME_PLACE) are one object, not cut."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from rg_core.grounding import teach
+    from rg_core.map.gaussians import GaussianModel
+    from rg_core.map.taught import TaughtObject
+
+    rng = np.random.default_rng(0)
+    red = rng.uniform([0.0, 0.0, 0.0], [0.06, 0.05, 0.05], (300, 3))
+    blue = rng.uniform([0.06, 0.0, 0.0], [0.09, 0.05, 0.08], (300, 3))   # touching, taller, another colour
+    gm = GaussianModel()
+    gm.append(torch.from_numpy(np.r_[red, blue]).float(), torch.full((600,), 0.003),
+              torch.from_numpy(np.r_[np.tile([0.8, 0.1, 0.1], (300, 1)), np.tile([0.1, 0.2, 0.8], (300, 1))]).float(), 0.9)
+    g = SimpleNamespace(mapper=SimpleNamespace(gaussians=gm))
+    blob = np.arange(600)
+    rec = lambda name, p: TaughtObject(name, np.asarray(p, float), 0.05, np.zeros(3), np.ones(3), np.zeros(4))  # noqa: E731
+    a, b = rec("red box", [0.01, 0.025, 0.05]), rec("blue can", [0.08, 0.025, 0.08])   # near each end
+    sa, sb = teach._separate(g, [(a, blob), (b, blob)])
+    assert len(np.intersect1d(sa, sb)) == 0
+    assert np.isin(np.arange(300), sa).mean() >= 0.95 and np.isin(np.arange(300, 600), sb).mean() >= 0.95
+    # the same colour all over: the cut falls halfway between the points, still two objects
+    gm.colors = torch.full((600, 3), 0.5)
+    sa, sb = teach._separate(g, [(a, blob), (b, blob)])
+    assert len(sa) + len(sb) == 600 and min(len(sa), len(sb)) >= 150
+    # two names at one place: one object, both keep it whole
+    c = rec("my box", [0.015, 0.025, 0.05])
+    sa, sc = teach._separate(g, [(a, blob), (c, blob)])
+    assert len(sa) == len(sc) == 600
+    # objects that share nothing are left as they are
+    sa, sb = teach._separate(g, [(a, blob[:300]), (b, blob[300:])])
+    assert np.array_equal(sa, blob[:300]) and np.array_equal(sb, blob[300:])

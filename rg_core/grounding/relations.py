@@ -26,8 +26,7 @@ NEAR_GAP = 0.10        # metres between two objects' boxes that still count as n
 SURFACE_HOLDS = 3      # objects resting on a graph object that make it a surface, not a thing beside them
 SAME_OBJECT = 0.5      # answers sharing this share of the smaller one's Gaussians are one object
 MIN_GAUSSIANS = 5      # fewer Gaussians are a speck, not an object
-# Supports a map rarely holds as an object (a plane under everything): "on the table" without a
-# table in the graph means resting on a surface, not on another object.
+# Supports a map rarely holds as an object: "on the table" with no table in the graph means on a surface.
 SURFACES = ("table", "desk", "counter", "countertop", "worktop", "shelf", "surface", "floor", "ground", "bench")
 # A ranking whose best two are this close is a tie, not an answer (the robot must not act on a coin
 # toss): distances and heights within max(TIE_M, TIE_SHARE of the best's), tops within TIE_M, volumes
@@ -72,12 +71,13 @@ def build_graph(g, names: list[str]) -> list[SceneObject]:
     from . import teach
 
     objs: list[SceneObject] = []
-    for t in g.mapper.taught:
+    for t in g.mapper.taught:   # a person's word: however few Gaussians it has (speck=1)
         try:
             o = teach.resolve(g, t)
         except ValueError:
             continue
-        _add(g, objs, t.name, GroundingResult(True, "", target=t.name, confidence=teach.TAUGHT_CONFIDENCE, objects=[o]))
+        _add(g, objs, t.name, GroundingResult(True, "", target=t.name, confidence=teach.TAUGHT_CONFIDENCE,
+                                              objects=[o]), speck=1)
     taught = {core_name(n) for n in g.mapper.taught.names()}
     for name in dict.fromkeys(names):
         if core_name(name) not in taught:
@@ -86,11 +86,11 @@ def build_graph(g, names: list[str]) -> list[SceneObject]:
             for o in objs] if taught else objs
 
 
-def _add(g, objs: list[SceneObject], name: str, res: GroundingResult) -> bool:
+def _add(g, objs: list[SceneObject], name: str, res: GroundingResult, speck: int = MIN_GAUSSIANS) -> bool:
     """Put an explicit answer for `name` into `objs`: a name more of the object whose Gaussians it
     shares (that object replaced, not changed: `objs` may copy a cached graph), else a new object.
-    False when absent, not sure (below the calibrated threshold) or a stray speck: not in the graph."""
-    if not res.success or len(res.objects[0].gaussian_ids) < MIN_GAUSSIANS:
+    False when absent, not sure (below the calibrated threshold) or a speck (< `speck` Gaussians)."""
+    if not res.success or len(res.objects[0].gaussian_ids) < speck:
         return False
     o = res.objects[0]
     ids = set(o.gaussian_ids.tolist())

@@ -29,6 +29,8 @@ ADD_BELOW_IOU = 0.8        # with no mask this like it, the visible mask itself 
 MIN_PIXELS = 30            # fewer visible pixels: the keyframe does not see the object
 PCA_RESIDUAL = 0.25        # a taught embedding the basis reconstructs worse than this refits it
 KEEP_SHARE = 0.5           # of a taught group's Gaussians (when last found) left: still the object by lineage
+SAME_PLACE = 0.03          # m: taught points this near are the same object (two names for it), not split
+SEPARATE_K, SEPARATE_COLOUR = 8, 10.0   # _separate: graph neighbours; path stretch per unit of RGB distance
 
 
 def _plural(query: str) -> bool:
@@ -41,35 +43,113 @@ def _plural(query: str) -> bool:
 # ------------------------------------------------------------------------------ finding taught objects
 
 def resolve(g, t: TaughtObject) -> GroundedObject:
-    """The taught object's group in the map as it is now (cached with the map): the Gaussians of its
-    lineage (t.uids) while at least KEEP_SHARE of those it had when last found are left, else found
-    again at its point and scale (and the lineage taken from that group); its record follows (box,
-    feature, count, lineage), so eviction keeps protecting it."""
-    key = (id(t), t.name, tuple(np.round(t.point, 5)), round(float(t.scale), 5))
-    gs = g.mapper.gaussians
+    """The taught object's group in the map as it is now (cached with the map): its own group
+    (`_own`), less what it shares with other taught objects and lies nearer to theirs (`_separate`):
+    two objects a person named apart are two, even where the 2D masks joined them in every view.
+    Its record follows (box, feature, count, lineage), so eviction keeps protecting it.
+    ValueError when it is no longer in the map."""
+    g._check_cache()
+    items = list(g.mapper.taught)
+    if all(x is not t for x in items):
+        items.append(t)
+    key = ("all", g.mapper.taught.version, tuple((id(x), x.name, tuple(np.round(x.point, 5))) for x in items))
+    found = g.cache.get("taught", key, lambda: _resolve_all(g, items))[id(t)]
+    if isinstance(found, Exception):
+        raise found
+    return found
 
-    def make():
-        ids = np.flatnonzero(np.isin(gs.uids.numpy(), t.uids)) if len(t.uids) else np.zeros(0, np.int64)
-        if len(ids) and len(ids) >= KEEP_SHARE * max(t.gaussians, 1):
-            obj = _group(gs, ids)
-        else:
-            try:
-                obj = object_at(g, t.point, scale=t.scale)[0]
-            except ValueError:   # nothing within reach of the point any more: what is left in its box
-                means = gs.means.detach().numpy()
-                ids = np.flatnonzero(np.all((means >= t.lo - 0.01) & (means <= t.hi + 0.01), 1))
-                if not len(ids):
-                    raise ValueError(f"the taught {t.name!r} is no longer in the map (nothing near "
-                                     "({:.3f}, {:.3f}, {:.3f}))".format(*t.point)) from None
-                obj = _group(gs, ids)
-            t.uids = np.unique(gs.uids.numpy()[obj.gaussian_ids])
-        t.lo, t.hi, t.gaussians = np.asarray(obj.aabb_min), np.asarray(obj.aabb_max), len(obj.gaussian_ids)
+
+def _resolve_all(g, items: list[TaughtObject]) -> dict:
+    """id(t) -> GroundedObject (or the ValueError saying it is gone) for every taught object."""
+    gs = g.mapper.gaussians
+    own, out = [], {}
+    for t in items:
+        try:
+            own.append((t, _own(g, t)))
+        except ValueError as exc:
+            out[id(t)] = exc
+    for (t, ids), sep in zip(own, _separate(g, own)):
+        obj = _group(gs, sep if len(sep) else ids)
         feats = g.field.gaussian_instance(t.scale, torch.from_numpy(obj.gaussian_ids))
         t.instance = torch.nn.functional.normalize(feats.mean(0), dim=-1).numpy()
         obj.confidence = TAUGHT_CONFIDENCE
-        return obj
-    g._check_cache()
-    return g.cache.get("taught", key, make)
+        out[id(t)] = obj
+    return out
+
+
+def _own(g, t: TaughtObject) -> np.ndarray:
+    """The Gaussians [n] of the taught object alone: its lineage (t.uids) while at least KEEP_SHARE
+    of those it had when last found are left, else found again at its point and scale (the lineage
+    taken from there). Updates t's box, count and lineage. ValueError when nothing is left there."""
+    gs = g.mapper.gaussians
+    ids = np.flatnonzero(np.isin(gs.uids.numpy(), t.uids)) if len(t.uids) else np.zeros(0, np.int64)
+    if not (len(ids) and len(ids) >= KEEP_SHARE * max(t.gaussians, 1)):
+        try:
+            ids = object_at(g, t.point, scale=t.scale)[0].gaussian_ids
+        except ValueError:   # nothing within reach of the point any more: what is left in its box
+            means = gs.means.detach().numpy()
+            ids = np.flatnonzero(np.all((means >= t.lo - 0.01) & (means <= t.hi + 0.01), 1))
+            if not len(ids):
+                raise ValueError(f"the taught {t.name!r} is no longer in the map (nothing near "
+                                 "({:.3f}, {:.3f}, {:.3f}))".format(*t.point)) from None
+        _take_lineage(g, t, ids)
+    means = gs.means.detach().numpy()[ids]
+    t.lo, t.hi, t.gaussians = means.min(0), means.max(0), len(ids)
+    return np.asarray(ids, np.int64)
+
+
+def _take_lineage(g, t: TaughtObject, ids: np.ndarray) -> None:
+    """t's group is now the Gaussians ids [n]: their lineage ids, made theirs alone first
+    (GaussianModel.isolate; other taught records holding a replaced id take its replacement too)."""
+    gs = g.mapper.gaussians
+    changed = gs.isolate(torch.from_numpy(np.asarray(ids, np.int64)))
+    if changed:
+        for x in g.mapper.taught:
+            if x is not t and len(x.uids):
+                add = [changed[u] for u in x.uids.tolist() if u in changed]
+                x.uids = np.union1d(x.uids, np.asarray(add, np.int64)) if add else x.uids
+    t.uids, t.gaussians = np.unique(gs.uids.numpy()[ids]), len(ids)
+
+
+def _separate(g, own: list[tuple[TaughtObject, np.ndarray]]) -> list[np.ndarray]:
+    """Each taught object's own Gaussians less those it shares with others taught elsewhere (points
+    more than SAME_PLACE apart) that lie nearer to another's point: nearness is the path length over
+    the shared Gaussians' k-nearest-neighbour graph, each step stretched by the colour difference
+    (x (1 + SEPARATE_COLOUR x RGB distance)), so the cut between touching objects follows their
+    colour edge. [ids] in the order of `own`."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+    from scipy.spatial import cKDTree
+
+    out = [ids for _, ids in own]
+    shared = [(i, j) for i in range(len(own)) for j in range(i + 1, len(own))
+              if np.linalg.norm(np.asarray(own[i][0].point) - np.asarray(own[j][0].point)) > SAME_PLACE
+              and len(np.intersect1d(own[i][1], own[j][1]))]
+    if not shared:
+        return out
+    gs = g.mapper.gaussians
+    members = sorted({k for pair in shared for k in pair})
+    union = np.unique(np.concatenate([own[k][1] for k in members]))                  # [U]
+    pts = gs.means.detach().numpy()[union].astype(np.float64)                         # [U, 3]
+    rgb = gs.colors.detach().numpy()[union].clip(0, 1)                                # [U, 3]
+    k = min(SEPARATE_K + 1, len(union))
+    d, nb = cKDTree(pts).query(pts, k=k)                                              # [U, k]
+    rows = np.repeat(np.arange(len(union)), k - 1)
+    cols, dist = nb[:, 1:].reshape(-1), d[:, 1:].reshape(-1)
+    w = dist * (1.0 + SEPARATE_COLOUR * np.linalg.norm(rgb[rows] - rgb[cols], axis=1)) + 1e-9
+    graph = coo_matrix((w, (rows, cols)), shape=(len(union),) * 2).tocsr()
+    seeds = [int(np.argmin(np.linalg.norm(pts - np.asarray(own[m][0].point), axis=1))) for m in members]
+    cost = dijkstra(graph, directed=False, indices=seeds)                            # [S, U]
+    far = ~np.isfinite(cost)   # off the graph: straight-line distance
+    if far.any():
+        straight = np.linalg.norm(pts[None] - pts[seeds][:, None], axis=-1) * 1e3
+        cost = np.where(far, straight, cost)
+    owner = np.asarray(members)[np.argmin(cost, 0)]                                  # [U] which object
+    for m in members:
+        others = union[(owner != m)]
+        contested = np.concatenate([own[o][1] for o in members if o != m])
+        out[m] = np.setdiff1d(own[m][1], np.intersect1d(others, contested))
+    return out
 
 
 def _group(gs, ids: np.ndarray) -> GroundedObject:
@@ -176,8 +256,8 @@ def teach(g, name: str, point=None, result: GroundingResult | None = None) -> tu
         rule = f"scale {scale:.3f} m: the scale of the answer it was taught from"
     feats = g.field.gaussian_instance(scale, torch.from_numpy(obj.gaussian_ids))
     t = TaughtObject(name, p, float(scale), np.asarray(obj.aabb_min), np.asarray(obj.aabb_max),
-                     torch.nn.functional.normalize(feats.mean(0), dim=-1).numpy(), rule, len(obj.gaussian_ids),
-                     uids=np.unique(g.mapper.gaussians.uids.numpy()[obj.gaussian_ids]))
+                     torch.nn.functional.normalize(feats.mean(0), dim=-1).numpy(), rule, len(obj.gaussian_ids))
+    _take_lineage(g, t, obj.gaussian_ids)
     g.mapper.taught.add(t)
     apply(g)
     return t, answer(g, name)
@@ -287,6 +367,14 @@ def apply(g, only: set[int] | None = None) -> dict:
     if g.field is not None:
         g.field.follow_supervision()
     g.cache.clear()
+    if only is None:   # the masks now carry the names: find each object again with them, and keep that lineage
+        for t in m.taught:
+            try:
+                ids = object_at(g, t.point, scale=t.scale)[0].gaussian_ids
+            except ValueError:
+                continue
+            _take_lineage(g, t, ids)
+        g.cache.clear()
     return stats
 
 

@@ -30,7 +30,15 @@ class GaussianModel:
         # Colour seen where no Gaussian is (sky, beyond the depth range): learnt from those pixels.
         self.background = torch.zeros(3)
         self.uids = torch.zeros(0, dtype=torch.long)
-        self.next_uid = 0
+        self._next_uid = [0]   # shared with shallow copies (snapshots): no id is given twice
+
+    @property
+    def next_uid(self) -> int:
+        return self._next_uid[0]
+
+    @next_uid.setter
+    def next_uid(self, value: int) -> None:
+        self._next_uid[0] = int(value)
 
     def __len__(self) -> int:
         return self.means.shape[0]
@@ -94,6 +102,26 @@ class GaussianModel:
         for k in PARAMS:
             setattr(self, k, getattr(self, k).detach()[mask])
         self.uids = self.uids[mask]
+
+    def isolate(self, ids: torch.Tensor) -> dict[int, int]:
+        """Give the Gaussians ids [M] lineage ids no Gaussian outside them carries: each of their
+        uids that others share (siblings of a split or clone) is replaced, for them, by a new one.
+        -> {old uid: new uid} of what changed (the uids of `ids` then name exactly them and their
+        later descendants)."""
+        ids = torch.as_tensor(ids, dtype=torch.long)
+        inside = torch.zeros(len(self), dtype=torch.bool)
+        inside[ids] = True
+        shared = torch.unique(self.uids[inside])
+        shared = shared[torch.isin(shared, self.uids[~inside])]
+        if not len(shared):
+            return {}
+        new = torch.arange(self.next_uid, self.next_uid + len(shared), dtype=torch.long)
+        self.next_uid += len(shared)
+        hit = inside & torch.isin(self.uids, shared)
+        uids = self.uids.clone()
+        uids[hit] = new[torch.searchsorted(shared, self.uids[hit])]
+        self.uids = uids
+        return dict(zip(shared.tolist(), new.tolist()))
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         return {**{k: v.detach().clone() for k, v in self.tensors().items()}, "uids": self.uids.clone(),
