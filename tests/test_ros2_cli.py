@@ -8,22 +8,20 @@ from __future__ import annotations
 
 import os
 import re
-import shutil
 import signal
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from ros2_cli_util import PREFIX, ROS2, ros2, ros_env
 from test_ros_node import TF_WAIT, status_values, wait_for, write_params
 
 pytest.importorskip("rg_interfaces.srv", reason="rg_interfaces is not installed: scripts/bootstrap.sh builds it from msg/")
 pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs is not installed: scripts/bootstrap.sh builds it from msg_tf2/")
 pytest.importorskip("rosbags")
-ROS2 = shutil.which("ros2") or (str(Path(sys.executable).with_name("ros2")) if Path(sys.executable).with_name("ros2").exists() else None)
 if ROS2 is None:
     pytest.skip("no `ros2` command: a full ROS 2 install, or scripts/bootstrap.sh with ../shared/vendor/ros2cli",
                 allow_module_level=True)
@@ -37,28 +35,8 @@ from conftest import need_rgbd  # noqa: E402
 from rg_core.io.rosbag_write import COLOR_TOPIC, write_scene_bag  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-PREFIX = Path(sys.prefix)   # the venv: where the set-up installs rg_ros's ROS layout
 N = 12
 CAMERA = COLOR_TOPIC.split("/color/")[0]   # realsense2_camera's namespace in the recorded bag: /camera/camera
-
-
-def ros_env() -> dict:
-    env = dict(os.environ)
-    paths = [p for p in env.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
-    if str(PREFIX) not in paths:
-        env["AMENT_PREFIX_PATH"] = os.pathsep.join([str(PREFIX), *paths])
-    env["PATH"] = os.pathsep.join([str(PREFIX / "bin"), env.get("PATH", "")])
-    env["RCUTILS_LOGGING_BUFFERED_STREAM"] = "0"
-    return env
-
-
-def ros2(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
-    """One ros2 CLI command; a command that does not finish in `timeout` s is a failure."""
-    try:
-        return subprocess.run([ROS2, *args], env=ros_env(), capture_output=True, text=True, timeout=timeout)
-    except subprocess.TimeoutExpired as exc:
-        raise AssertionError(f"`ros2 {' '.join(args)}` did not finish in {timeout:.0f} s: "
-                             f"{(exc.stdout or b'')[-2000:]!r} {(exc.stderr or b'')[-2000:]!r}") from exc
 
 
 def ros2_until(args: list[str], ok, timeout: float = 120.0) -> subprocess.CompletedProcess:
@@ -395,3 +373,21 @@ def test_bad_parameters_are_refused_with_the_name(tmp_path):
         p.write_text(f"rg_node:\n  ros__parameters:\n    {line}\n")
         r = ros2("run", "rg_ros", "rg-node", "--ros-args", "--params-file", str(p), timeout=120)
         assert r.returncode == 2 and expect in r.stderr, (line, r.returncode, r.stderr[-2000:])
+
+
+def test_an_exit_crash_counts_only_after_the_complete_result():
+    """The Fast-DDS exit-crash rule (ros2_cli_util): a SIGSEGV after the whole response passes; one
+    before it, another signal, another verb or a plain failure does not."""
+    from ros2_cli_util import completed_before_crash
+
+    done = "requester: making request: ...\n\nresponse:\nrg_interfaces.srv.Ground_Response(success=True,\n x=1)\n\n"
+    call = ("service", "call", "/ground")
+    assert completed_before_crash(call, -signal.SIGSEGV, done)
+    assert not completed_before_crash(call, -signal.SIGSEGV, "requester: making request: ...\n\n")
+    assert not completed_before_crash(call, -signal.SIGSEGV, done[:-20])
+    assert not completed_before_crash(call, -signal.SIGABRT, done)
+    assert not completed_before_crash(call, 1, done)
+    assert not completed_before_crash(("launch", "rg_ros"), -signal.SIGSEGV, done)
+    assert completed_before_crash(("topic", "pub", "--once"), -signal.SIGSEGV, "publisher: beginning loop\npublishing #1: x\n\n")
+    assert completed_before_crash(("topic", "echo", "--once"), -signal.SIGSEGV, "data: 1\n---\n")
+    assert not completed_before_crash(("topic", "echo", "--once"), -signal.SIGSEGV, "data: 1\n")

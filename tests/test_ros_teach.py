@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 import re
-import shutil
 import subprocess
 import sys
 import threading
@@ -18,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ros2_cli_util import ROS2
+from ros2_cli_util import ros2 as run_ros2
 from test_ros_node import Harness as NodeHarness
 from test_ros_node import TOPICS_A, ros_args, start, status_values, stop, wait_for, write_params
 
@@ -34,14 +35,11 @@ from geometry_msgs.msg import PointStamped, TransformStamped  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from rg_interfaces.msg import SceneGraph  # noqa: E402
 from sensor_msgs.msg import Image, PointCloud2  # noqa: E402
-from std_srvs.srv import Trigger  # noqa: E402
 from tf2_msgs.msg import TFMessage  # noqa: E402
 
 from rg_ros.pointcloud import from_pointcloud2  # noqa: E402
 from rg_ros.run import NodeExecutor  # noqa: E402
 
-ROS2 = shutil.which("ros2") or (str(Path(sys.executable).with_name("ros2"))
-                                if Path(sys.executable).with_name("ros2").exists() else None)
 need_ros2 = pytest.mark.skipif(ROS2 is None, reason="no `ros2` command: a full ROS 2 install, or scripts/bootstrap.sh "
                                "with ../shared/vendor/ros2cli")
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -49,12 +47,8 @@ TABLE = np.array([1.0, 2.0, 0.0])   # map <- table: a static transform the probe
 
 
 def ros2(*args: str, timeout: float = 120.0) -> str:
-    """One literal `ros2` command (the venv's, with AMENT_PREFIX_PATH); its stdout + stderr."""
-    env = dict(os.environ)
-    paths = [p for p in env.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
-    env["AMENT_PREFIX_PATH"] = os.pathsep.join(dict.fromkeys([sys.prefix, *paths]))
-    env["PATH"] = os.pathsep.join([str(Path(sys.prefix) / "bin"), env.get("PATH", "")])
-    r = subprocess.run([ROS2, *args], env=env, capture_output=True, text=True, timeout=timeout)
+    """One literal `ros2` command that must succeed; its stdout + stderr."""
+    r = run_ros2(*args, timeout=timeout)
     assert r.returncode == 0, f"`ros2 {' '.join(args)}` exited {r.returncode}: {r.stdout[-2000:]} {r.stderr[-2000:]}"
     return r.stdout + r.stderr
 
