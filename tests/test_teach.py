@@ -474,6 +474,33 @@ def test_two_objects_named_apart_are_split_where_the_masks_joined_them():
     c = rec("my box", [0.015, 0.025, 0.05])
     sa, sc = teach._separate(g, [(a, blob), (c, blob)])
     assert len(sa) == len(sc) == 600
-    # objects that share nothing are left as they are
-    sa, sb = teach._separate(g, [(a, blob[:300]), (b, blob[300:])])
-    assert np.array_equal(sa, blob[:300]) and np.array_equal(sb, blob[300:])
+    # touching groups, one holding a piece of the other (a knife's handle given to the cup): it goes back
+    gm.colors = torch.from_numpy(np.r_[np.tile([0.8, 0.1, 0.1], (300, 1)), np.tile([0.1, 0.2, 0.8], (300, 1))]).float()
+    piece = 300 + np.argsort(blue[:, 0])[:60]            # the blue Gaussians nearest the red box
+    sa, sb = teach._separate(g, [(a, np.r_[blob[:300], piece]), (b, np.setdiff1d(blob[300:], piece))])
+    assert np.isin(piece, sb).mean() >= 0.95 and np.isin(blob[:300], sa).mean() >= 0.95, (len(sa), len(sb))
+    # groups that neither share nor touch (over ADJACENT apart) are left as they are
+    far_a, far_b = np.flatnonzero(red[:, 0] < 0.02), 300 + np.flatnonzero(blue[:, 0] > 0.075)
+    sa, sb = teach._separate(g, [(a, far_a), (b, far_b)])
+    assert np.array_equal(sa, far_a) and np.array_equal(sb, far_b)
+
+
+def test_nearest_seed_follows_paths_and_colour_edges():
+    """separate.nearest_seed: along a bent strip a point goes to the seed nearer by path, not by straight
+    line; a colour edge moves the cut onto it; points the graph does not reach go by straight line."""
+    from rg_core.grounding.separate import nearest_seed
+
+    t = np.linspace(0, 1, 201)
+    strip = np.c_[np.where(t < 0.5, t, 0.5), np.where(t < 0.5, 0.0, t - 0.5), np.zeros_like(t)] * 0.2   # an L, 0.2 m
+    grey = np.full((201, 3), 0.5)
+    seeds = np.array([strip[0], strip[-1]])
+    own = nearest_seed(strip, grey, seeds)
+    assert own[:95].tolist() == [0] * 95 and own[106:].tolist() == [1] * 95    # the cut is at the corner
+    col = grey.copy()
+    col[97:] = [0.9, 0.1, 0.1]         # a colour edge 3 mm before halfway: crossing it costs about 7 mm
+    own = nearest_seed(strip, col, seeds)
+    assert (own[:97] == 0).all() and (own[97:] == 1).all()
+    lone = np.r_[strip, [[0.0, 0.5, 0.0]]]                                         # 0.4 m off the strip
+    own = nearest_seed(lone, np.r_[grey, [[0.5, 0.5, 0.5]]], seeds, k=4)
+    assert own[-1] == 1                                                            # nearer seed 1 in a straight line
+    assert nearest_seed(np.zeros((0, 3)), np.zeros((0, 3)), seeds).shape == (0,)

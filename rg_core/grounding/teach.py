@@ -30,7 +30,7 @@ MIN_PIXELS = 30            # fewer visible pixels: the keyframe does not see the
 PCA_RESIDUAL = 0.25        # a taught embedding the basis reconstructs worse than this refits it
 KEEP_SHARE = 0.5           # of a taught group's Gaussians (when last found) left: still the object by lineage
 SAME_PLACE = 0.03          # m: taught points this near are the same object (two names for it), not split
-SEPARATE_K, SEPARATE_COLOUR = 8, 10.0   # _separate: graph neighbours; path stretch per unit of RGB distance
+ADJACENT = 0.01            # m: taught groups this near touch, and _separate splits them apart
 
 
 def _plural(query: str) -> bool:
@@ -112,43 +112,36 @@ def _take_lineage(g, t: TaughtObject, ids: np.ndarray) -> None:
 
 
 def _separate(g, own: list[tuple[TaughtObject, np.ndarray]]) -> list[np.ndarray]:
-    """Each taught object's own Gaussians less those it shares with others taught elsewhere (points
-    more than SAME_PLACE apart) that lie nearer to another's point: nearness is the path length over
-    the shared Gaussians' k-nearest-neighbour graph, each step stretched by the colour difference
-    (x (1 + SEPARATE_COLOUR x RGB distance)), so the cut between touching objects follows their
-    colour edge. [ids] in the order of `own`."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import dijkstra
+    """Taught objects whose groups share Gaussians or touch (within ADJACENT), taught apart (points
+    more than SAME_PLACE apart), have the union of their groups split between their points
+    (separate.nearest_seed): a handle the instance field gave the cup beside it goes back to the
+    knife. [ids] in the order of `own`."""
+    from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
+    from .separate import nearest_seed
+
     out = [ids for _, ids in own]
-    shared = [(i, j) for i in range(len(own)) for j in range(i + 1, len(own))
-              if np.linalg.norm(np.asarray(own[i][0].point) - np.asarray(own[j][0].point)) > SAME_PLACE
-              and len(np.intersect1d(own[i][1], own[j][1]))]
-    if not shared:
-        return out
     gs = g.mapper.gaussians
-    members = sorted({k for pair in shared for k in pair})
-    union = np.unique(np.concatenate([own[k][1] for k in members]))                  # [U]
-    pts = gs.means.detach().numpy()[union].astype(np.float64)                         # [U, 3]
-    rgb = gs.colors.detach().numpy()[union].clip(0, 1)                                # [U, 3]
-    k = min(SEPARATE_K + 1, len(union))
-    d, nb = cKDTree(pts).query(pts, k=k)                                              # [U, k]
-    rows = np.repeat(np.arange(len(union)), k - 1)
-    cols, dist = nb[:, 1:].reshape(-1), d[:, 1:].reshape(-1)
-    w = dist * (1.0 + SEPARATE_COLOUR * np.linalg.norm(rgb[rows] - rgb[cols], axis=1)) + 1e-9
-    graph = coo_matrix((w, (rows, cols)), shape=(len(union),) * 2).tocsr()
-    seeds = [int(np.argmin(np.linalg.norm(pts - np.asarray(own[m][0].point), axis=1))) for m in members]
-    cost = dijkstra(graph, directed=False, indices=seeds)                            # [S, U]
-    far = ~np.isfinite(cost)   # off the graph: straight-line distance
-    if far.any():
-        straight = np.linalg.norm(pts[None] - pts[seeds][:, None], axis=-1) * 1e3
-        cost = np.where(far, straight, cost)
-    owner = np.asarray(members)[np.argmin(cost, 0)]                                  # [U] which object
-    for m in members:
-        others = union[(owner != m)]
-        contested = np.concatenate([own[o][1] for o in members if o != m])
-        out[m] = np.setdiff1d(own[m][1], np.intersect1d(others, contested))
+    means = gs.means.detach().numpy().astype(np.float64)
+    trees = [cKDTree(means[ids]) for _, ids in own]
+    points = np.stack([np.asarray(t.point, np.float64) for t, _ in own])                # [T, 3]
+    same = np.linalg.norm(points[:, None] - points[None], axis=-1) <= SAME_PLACE         # [T, T]
+    place = same.argmax(1)        # one seed per place: two names taught at one point share a group
+    pair = np.zeros_like(same)
+    for i in range(len(own)):
+        for j in range(i + 1, len(own)):
+            pair[i, j] = same[i, j] or trees[i].sparse_distance_matrix(trees[j], ADJACENT).nnz > 0
+    _, comp = connected_components(pair, directed=False)
+    for c in np.unique(comp):
+        members = np.flatnonzero(comp == c)
+        seeds = np.unique(place[members])
+        if len(seeds) < 2:
+            continue
+        union = np.unique(np.concatenate([own[m][1] for m in members]))                # [U]
+        owner = seeds[nearest_seed(means[union], gs.colors.detach().numpy()[union], points[seeds])]
+        for m in members:
+            out[m] = union[owner == place[m]]
     return out
 
 

@@ -1,0 +1,44 @@
+"""Split touching objects between the points a person gave them: colour-stretched geodesics.
+
+Where the 2D masks joined two objects in every view (a knife's handle against a cup), the instance
+field joins them too, and only the person's points tell them apart. Each Gaussian goes to the seed
+with the shortest path over the Gaussians' k-nearest-neighbour graph, each step's length stretched
+by the colour difference across it (x (1 + colour_weight x RGB distance)), so the cut between
+touching objects follows their colour edge rather than the midpoint between the seeds.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+NEIGHBOURS = 8        # graph neighbours per Gaussian
+COLOUR_WEIGHT = 10.0  # path stretch per unit of RGB distance (0-sqrt(3)); 30 set a synthetic knife apart
+                      # but moved a real pudding box into the wood block beside it (ycbv_0002)
+
+
+def nearest_seed(points: np.ndarray, colours: np.ndarray, seeds: np.ndarray, k: int = NEIGHBOURS,
+                 colour_weight: float = COLOUR_WEIGHT) -> np.ndarray:
+    """points [U, 3] (m), colours [U, 3] (0-1), seeds [S, 3] (m) -> [U] index of each point's seed.
+
+    Each seed starts at the point nearest it; points the graph does not connect to any seed go by
+    straight-line distance (scaled far above any path, so a connected seed always wins)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, np.float64)
+    if len(pts) == 0:
+        return np.zeros(0, np.int64)
+    rgb = np.clip(np.asarray(colours, np.float64), 0.0, 1.0)
+    k = min(k + 1, len(pts))
+    d, nb = cKDTree(pts).query(pts, k=k)                                              # [U, k]
+    rows = np.repeat(np.arange(len(pts)), k - 1)
+    cols, dist = nb[:, 1:].reshape(-1), d[:, 1:].reshape(-1)
+    w = dist * (1.0 + colour_weight * np.linalg.norm(rgb[rows] - rgb[cols], axis=1)) + 1e-9
+    graph = coo_matrix((w, (rows, cols)), shape=(len(pts),) * 2).tocsr()
+    start = [int(np.argmin(np.linalg.norm(pts - np.asarray(s, np.float64), axis=1))) for s in seeds]
+    cost = dijkstra(graph, directed=False, indices=start)                             # [S, U]
+    far = ~np.isfinite(cost)
+    if far.any():
+        straight = np.linalg.norm(pts[None] - pts[start][:, None], axis=-1) * 1e3
+        cost = np.where(far, straight, cost)
+    return np.argmin(cost, 0)
