@@ -483,6 +483,8 @@ def test_two_objects_named_apart_are_split_where_the_masks_joined_them():
     far_a, far_b = np.flatnonzero(red[:, 0] < 0.02), 300 + np.flatnonzero(blue[:, 0] > 0.075)
     sa, sb = teach._separate(g, [(a, far_a), (b, far_b)])
     assert np.array_equal(sa, far_a) and np.array_equal(sb, far_b)
+    # one taught object, or none found (every record gone from the map): nothing to split
+    assert teach._separate(g, []) == [] and np.array_equal(teach._separate(g, [(a, blob)])[0], blob)
 
 
 def test_nearest_seed_follows_paths_and_colour_edges():

@@ -122,6 +122,8 @@ def _separate(g, own: list[tuple[TaughtObject, np.ndarray]]) -> list[np.ndarray]
     from .separate import nearest_seed
 
     out = [ids for _, ids in own]
+    if len(own) < 2:
+        return out
     gs = g.mapper.gaussians
     means = gs.means.detach().numpy().astype(np.float64)
     trees = [cKDTree(means[ids]) for _, ids in own]
