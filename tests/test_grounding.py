@@ -240,6 +240,39 @@ def test_vote_border_is_measured_from_the_map(grounder):
     assert fixed.vote_border() == 1
 
 
+def test_map_resolution_is_not_shrunk_by_clumped_clones(grounder):
+    """A photo fit's density control clones Gaussians in place: the map's resolution (the links that
+    keep a group one piece) stays at least the Gaussians' median size, not the clones' 0.1 mm."""
+    import copy
+
+    from rg_core.geometry.points import map_spacing
+
+    mapper = copy.copy(grounder.mapper)
+    gs = copy.deepcopy(grounder.mapper.gaussians)
+    gs.means = torch.cat([gs.means, gs.means + 1e-4])
+    for k in ("log_scales", "quats", "opacity_logits", "colors"):
+        setattr(gs, k, torch.cat([getattr(gs, k)] * 2))
+    mapper.gaussians = gs
+    g = Grounder(mapper, grounder.field, RGConfig())
+    assert map_spacing(gs.means.numpy()) < 2e-4
+    size = float(gs.scales.max(1).values.median())
+    assert g.spacing() >= size > 10 * map_spacing(gs.means.numpy())
+    assert grounder.spacing() >= map_spacing(grounder.mapper.gaussians.means.detach().numpy())
+
+
+@pytest.mark.parametrize("built, expect", [({}, 0.02), ({"kind": "rgbd"}, 0.02),
+                                           ({"kind": "photo", "photo": {"depth_spread_m": 0.15}}, 0.15),
+                                           ({"kind": "photo", "photo": {"depth_spread_m": 0.005}}, 0.02)])
+def test_votes_allow_a_photo_maps_depth_spread(grounder, built, expect):
+    """A photo map's keyframe depth is its own expected depth, and an object's Gaussians lie around
+    it by the fit's measured spread: the votes' depth test allows that much, never less than 2 cm."""
+    import copy
+
+    mapper = copy.copy(grounder.mapper)
+    mapper.built = built
+    assert Grounder(mapper, grounder.field, RGConfig()).vote_depth_tol() == pytest.approx(expect)
+
+
 def test_text_embeddings_kept_are_bounded(grounder, monkeypatch):
     """Hours of distinct queries: the Grounder keeps the newest TEXT_CACHE_SIZE text embeddings, and
     an evicted text embeds again to the same row."""

@@ -107,7 +107,8 @@ def registration_border(offsets: np.ndarray, max_px: int = 3, min_pixels: int = 
     return int(min(max_px, max(1, round(float(np.median(o))))))
 
 
-SIZE_TOL = 2.0   # a Gaussian reaches the sensed surface within this many of its largest std devs
+SIZE_TOL = 2.0        # a Gaussian reaches the sensed surface within this many of its largest std devs
+DEPTH_TOL_ABS = 0.02  # m: a point this near the sensed depth is that surface (mask_votes' default)
 
 
 def dilated(mask: np.ndarray, border_px: int) -> np.ndarray:
@@ -143,7 +144,7 @@ def sight(points: np.ndarray, K: np.ndarray, cam_to_world: np.ndarray, depths, t
 
 
 def mask_votes(points: np.ndarray, views: list[MaskView], sizes: np.ndarray | None = None, border_px: int = 0,
-               depth_tol_abs: float = 0.02, depth_tol_rel: float = 0.02, size_tol: float = SIZE_TOL) -> MaskVotes:
+               depth_tol_abs: float = DEPTH_TOL_ABS, depth_tol_rel: float = 0.02, size_tol: float = SIZE_TOL) -> MaskVotes:
     """points [N, 3] world, sizes [N] (largest std dev, m) -> how many views see each point inside
     and outside their mask of the target (masks dilated by `border_px`), and in how many views it
     projects into the mask or anywhere on the image, seen or hidden.

@@ -116,11 +116,32 @@ def region(g, kf, mask: np.ndarray, depth: torch.Tensor, alpha: torch.Tensor, sc
 
 
 def spacing(g) -> float:
-    """The map's median nearest-neighbour distance between Gaussians (m), cached until the map
-    changes (idle refinement moves Gaussians too: see rg_core/grounding/cache.py)."""
+    """The map's resolution (m): the median nearest-neighbour distance between Gaussians, at least
+    their median largest axis (std dev), cached until the map changes (idle refinement moves
+    Gaussians too: see rg_core/grounding/cache.py). A map seeded from depth has Gaussians about as
+    far apart as they are large; a photo fit's density control clones small ones into clumps (median
+    neighbour 1.4 mm, median axis 10 mm on YCB-Video 0002), and links of a few neighbour distances
+    then cut each object into pieces (docs/pipeline.md, "Maps from photos")."""
     g._check_cache()
-    return g.cache.get("spacing", g.gcfg.seed,
-                       lambda: map_spacing(g.mapper.gaussians.means.detach().numpy(), seed=g.gcfg.seed))
+
+    def make() -> float:
+        gs = g.mapper.gaussians
+        nn = map_spacing(gs.means.detach().numpy(), seed=g.gcfg.seed)
+        size = float(gs.scales.detach().max(1).values.median()) if len(gs) else 0.0
+        return max(nn, size)
+
+    return g.cache.get("spacing", g.gcfg.seed, make)
+
+
+def vote_depth_tol(g) -> float:
+    """Least depth difference (m) at which a keyframe's depth says a Gaussian is not its surface
+    (carve.mask_votes' depth_tol_abs): carve's own 2 cm, or a photo map's depth spread (the median
+    spread of its Gaussians' depths along a ray, photo_fit.depth_spread) where that is wider. A
+    photo map's keyframe depth is its own expected depth, and an object's Gaussians lie around it."""
+    from .carve import DEPTH_TOL_ABS
+
+    photo = (getattr(g.mapper, "built", None) or {}).get("photo") or {}
+    return max(DEPTH_TOL_ABS, float(photo.get("depth_spread_m", 0.0)))
 
 
 def vote_border(g) -> int:

@@ -233,7 +233,7 @@ def object_at(g, point, scale: float | None = None, rule: str = "") -> tuple[Gro
     for _ in range(VOTE_ROUNDS):   # the point's views first, then every view that sees the group so far
         if not views:
             break
-        v = mask_votes(means[cand], views, sizes(cand), border_px=g.vote_border())
+        v = mask_votes(means[cand], views, sizes(cand), border_px=g.vote_border(), depth_tol_abs=g.vote_depth_tol())
         need = min(c.min_mask_votes, len(views))
         ids = np.union1d(np.setdiff1d(ids, cand[v.carved(need)]), cand[v.voted(need)]).astype(np.int64)
         inside = np.isin(cand, ids)

@@ -161,6 +161,10 @@ class Grounder:
         """Mask growth (px) for the votes: ground.vote_border_px, or measured with -1."""
         return derived.vote_border(self)
 
+    def vote_depth_tol(self) -> float:
+        """Least depth difference (m) at which the votes call a Gaussian off a keyframe's surface."""
+        return derived.vote_depth_tol(self)
+
     def render_keyframe(self, kf):
         """The field rendered from a keyframe (latent, colour, depth, alpha), cached per keyframe."""
         return derived.render_keyframe(self, kf)

@@ -266,6 +266,7 @@ def objects(g, ref: Reference, pk: Peak, found: list[tuple[np.ndarray, float]], 
     views = carve_views(g, ref)
     ref_view = keyframe_view(kf, ref.mask.numpy()) if g.gcfg.anchor_support else None
     border = g.vote_border() if views or ref_view is not None else 0
+    tol = g.vote_depth_tol()
     def sizes(ids: np.ndarray) -> np.ndarray:  # [k] largest axis of some Gaussians (m)
         return gs.log_scales.detach()[torch.from_numpy(ids)].max(1).values.exp().numpy()
 
@@ -277,14 +278,14 @@ def objects(g, ref: Reference, pk: Peak, found: list[tuple[np.ndarray, float]], 
             near = (within(gs.means.detach(), pk.anchor, 4 * ref.scale)
                     if n == 0 and pk.has_depth else np.zeros(0, np.int64))
             cand = np.unique(np.concatenate([ids, near]).astype(np.int64))
-            v = mask_votes(means[cand], seen_by, sizes(cand), border_px=border)
+            v = mask_votes(means[cand], seen_by, sizes(cand), border_px=border, depth_tol_abs=tol)
             ids = np.setdiff1d(ids, cand[v.carved(g.gcfg.min_mask_votes)])
             if n == 0:
                 ids = np.union1d(ids, cand[v.voted(g.gcfg.min_mask_votes)])
         if link > 0 and len(ids) > 1:
             support = against = None
             if n == 0 and ref_view is not None:
-                rv = mask_votes(means[ids], [ref_view], sizes(ids), border_px=border)
+                rv = mask_votes(means[ids], [ref_view], sizes(ids), border_px=border, depth_tol_abs=tol)
                 support, against = rv.inside > 0, rv.outside > 0
             ids = ids[connected_to(means[ids], pk.anchor if n == 0 and pk.has_depth else None, link, support, against)]
         if g.gcfg.outlier_mads > 0:
