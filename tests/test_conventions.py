@@ -90,3 +90,21 @@ def test_up_direction_from_camera_poses():
     assert np.allclose(cv.up_direction(np.stack([R @ T for T in ring])), R[:3, :3] @ [0, 0, 1], atol=1e-9)
     with pytest.raises(ValueError, match="finite"):
         cv.up_direction(np.full((2, 4, 4), np.nan))
+
+
+def test_depth_resolution_is_one_pixel_of_disparity_across_the_widest_baseline():
+    """z^2 / (f B): f = 500 px, cameras 0.1 m apart at 1 m: 2 cm; a third camera nearer both does
+    not change it, the farthest pair counts; one camera, or all at one place, resolve nothing (the
+    depth itself); and never more than the depth."""
+    from rg_core.geometry.conventions import depth_resolution
+
+    K = np.array([[500.0, 0, 160], [0, 500.0, 120], [0, 0, 1]])
+    poses = np.repeat(np.eye(4)[None], 3, 0)
+    poses[1, 0, 3], poses[2, 0, 3] = 0.1, 0.05
+    assert depth_resolution(np.stack([K] * 2), poses[:2], 1.0) == pytest.approx(0.02)
+    assert depth_resolution(np.stack([K] * 3), poses, 1.0) == pytest.approx(0.02)
+    assert depth_resolution(np.stack([K] * 3), poses, 2.0) == pytest.approx(0.08)
+    assert depth_resolution(K[None], poses[:1], 1.5) == 1.5
+    assert depth_resolution(np.stack([K] * 2), np.repeat(np.eye(4)[None], 2, 0), 1.5) == 1.5
+    assert depth_resolution(np.stack([K] * 2), poses[:2], 1e4) == 1e4
+    assert depth_resolution(np.stack([K] * 2), poses[:2], 0.0) == 0.0

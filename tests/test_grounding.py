@@ -261,11 +261,12 @@ def test_map_resolution_is_not_shrunk_by_clumped_clones(grounder):
 
 
 @pytest.mark.parametrize("built, expect", [({}, 0.02), ({"kind": "rgbd"}, 0.02),
-                                           ({"kind": "photo", "photo": {"depth_spread_m": 0.15}}, 0.15),
-                                           ({"kind": "photo", "photo": {"depth_spread_m": 0.005}}, 0.02)])
-def test_votes_allow_a_photo_maps_depth_spread(grounder, built, expect):
-    """A photo map's keyframe depth is its own expected depth, and an object's Gaussians lie around
-    it by the fit's measured spread: the votes' depth test allows that much, never less than 2 cm."""
+                                           ({"kind": "photo", "photo": {"depth_resolution_m": 0.15}}, 0.15),
+                                           ({"kind": "photo", "photo": {"depth_resolution_m": 0.005}}, 0.02)])
+def test_votes_allow_a_photo_maps_depth_resolution(grounder, built, expect):
+    """A photo map's keyframe depth is its own expected depth, and the photos place an object's
+    Gaussians only as well as their baseline allows: the votes' depth test allows that much, never
+    less than 2 cm."""
     import copy
 
     mapper = copy.copy(grounder.mapper)

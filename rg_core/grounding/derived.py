@@ -135,13 +135,14 @@ def spacing(g) -> float:
 
 def vote_depth_tol(g) -> float:
     """Least depth difference (m) at which a keyframe's depth says a Gaussian is not its surface
-    (carve.mask_votes' depth_tol_abs): carve's own 2 cm, or a photo map's depth spread (the median
-    spread of its Gaussians' depths along a ray, photo_fit.depth_spread) where that is wider. A
-    photo map's keyframe depth is its own expected depth, and an object's Gaussians lie around it."""
+    (carve.mask_votes' depth_tol_abs): carve's own 2 cm, or a photo map's depth resolution (the depth
+    one pixel of disparity spans across its views, photo_fit.depth_resolution) where that is coarser.
+    A photo map's keyframe depth is its own expected depth, and the photos place an object's
+    Gaussians only that well in depth."""
     from .carve import DEPTH_TOL_ABS
 
     photo = (getattr(g.mapper, "built", None) or {}).get("photo") or {}
-    return max(DEPTH_TOL_ABS, float(photo.get("depth_spread_m", 0.0)))
+    return max(DEPTH_TOL_ABS, float(photo.get("depth_resolution_m", 0.0)))
 
 
 def vote_border(g) -> int:

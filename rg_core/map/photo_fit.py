@@ -62,7 +62,7 @@ class PhotoFit:
     decided: int = 0                                   # step the stop was decided (then the held-out views joined)
     heldout: list = field(default_factory=list)        # indices of the views held out until then
     init: str = ""                                     # what the Gaussians started from
-    depth_spread: float = 0.0                          # m: median spread of depth along a keyframe's rays (rendered_depth)
+    depth_resolution: float = 0.0                      # m: depth one pixel of disparity spans (depth_resolution)
 
 
 def scene_extent(views: list[PhotoView], depth: float | None = None) -> float:
@@ -310,21 +310,13 @@ class PhotoFitter:
 
 
 @torch.no_grad()
-def rendered_depth(g: GaussianModel, v: PhotoView, map_cfg: MapConfig, min_alpha: float = 0.5) -> tuple[torch.Tensor, torch.Tensor]:
-    """([H, W] metres: the fitted map's expected depth where it is opaque (alpha >= min_alpha), else
-    0 (invalid), what the supervision's physical scales then read as the sensor's depth; [H, W] its
-    spread there: the alpha-weighted std dev of the Gaussians' depths along the ray, 0 elsewhere)."""
+def rendered_depth(g: GaussianModel, v: PhotoView, map_cfg: MapConfig, min_alpha: float = 0.5) -> torch.Tensor:
+    """[H, W] metres: the fitted map's expected depth where it is opaque (alpha >= min_alpha), else
+    0 (invalid), what the supervision's physical scales then read as the sensor's depth."""
     h, w = v.rgb.shape[:2]
     cam = map_camera(map_cfg, v.K, v.cam_to_world, w, h)
-    w2c = torch.from_numpy(np.linalg.inv(v.cam_to_world)[2]).float()                     # [4] depth row
-    z = g.means @ w2c[:3] + w2c[3]                                                        # [N] camera depth
-    out = rasterize(g.means, g.scales, g.quats, g.opacities, torch.stack([z, z * z], 1), cam,
-                    antialiased=map_cfg.antialiased)
-    a = out.alpha.clamp(min=1e-6)
-    opaque = out.alpha >= min_alpha
-    spread = (out.channels[..., 1] / a - (out.channels[..., 0] / a) ** 2).clamp(min=0).sqrt()
-    zero = torch.zeros_like(out.depth)
-    return torch.where(opaque, out.depth, zero), torch.where(opaque, spread, zero)
+    out = rasterize(g.means, g.scales, g.quats, g.opacities, g.colors, cam, antialiased=map_cfg.antialiased)
+    return torch.where(out.alpha >= min_alpha, out.depth, torch.zeros_like(out.depth))
 
 
 def photo_view(frame, width: int) -> PhotoView:
@@ -352,6 +344,7 @@ def photo_mapper(frames, map_cfg: MapConfig | None = None, cfg: PhotoMapConfig |
     keyframes are those views (evenly thinned to map.max_keyframes) with the fit's rendered depth,
     so supervision, the field, grounding and saving run unchanged. `points`: io.scene.SparsePoints
     or None (random initialisation)."""
+    from ..geometry.conventions import depth_resolution
     from .keyframes import Keyframe
     from .mapper import Mapper
     from .gaussians import ResizableAdam
@@ -377,10 +370,11 @@ def photo_mapper(frames, map_cfg: MapConfig | None = None, cfg: PhotoMapConfig |
     keep = views
     if map_cfg.max_keyframes and len(views) > map_cfg.max_keyframes:
         keep = [views[i] for i in np.linspace(0, len(views) - 1, map_cfg.max_keyframes).round().astype(int)]
-    rendered = [rendered_depth(fit.gaussians, v, map_cfg) for v in keep]
-    m.keyframes = [Keyframe(v.index, v.stamp, v.cam_to_world, v.K, v.rgb, d) for v, (d, _) in zip(keep, rendered)]
-    spread = torch.cat([sp[d > 0] for d, sp in rendered])
-    fit.depth_spread = float(spread.median()) if len(spread) else 0.0
+    m.keyframes = [Keyframe(v.index, v.stamp, v.cam_to_world, v.K, v.rgb, rendered_depth(fit.gaussians, v, map_cfg))
+                   for v in keep]
+    z = torch.cat([kf.depth[kf.depth > 0] for kf in m.keyframes])                     # the map's depths
+    fit.depth_resolution = depth_resolution(np.stack([v.K for v in views]), np.stack([v.cam_to_world for v in views]),
+                                            float(z.median()) if len(z) else 0.0)
     m.frames_seen = len(frames)
     m.last_stamp = max(v.stamp for v in views)
     m.totals["added"] = len(fit.gaussians)
@@ -393,7 +387,7 @@ def fit_summary(fit: PhotoFit) -> dict:
     """What a report says of a fit: steps, why it stopped, seconds, Gaussians, density control and
     the held-out PSNR against time (the curve `rg report` plots)."""
     return {"steps": fit.steps, "stopped": fit.stopped, "decided": fit.decided, "heldout_views": fit.heldout,
-            "init": fit.init, "depth_spread_m": round(fit.depth_spread, 5),
+            "init": fit.init, "depth_resolution_m": round(fit.depth_resolution, 5),
             "seconds": round(fit.seconds, 3),
             "gaussians": len(fit.gaussians), **fit.totals,
             "heldout_psnr": [[h[0], round(h[1], 3), round(h[2], 3), h[3]] for h in fit.history]}
