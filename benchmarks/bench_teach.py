@@ -369,6 +369,7 @@ def run_scene(key: str, path: Path, kind: str, args, work: Path) -> dict:
     drops = [before[n] - after.get(n, 0.0) for n in before]
     R["persist_miou"] = ev_p["explicit"]["miou_visible"]
     R["persist_worst_drop"] = round(max(drops), 2) if drops else 0.0
+    R["persist_drops"] = {n: round(before[n] - after.get(n, 0.0), 2) for n in before}   # per taught name (JSON only)
     R["persist_answered_pct"] = pct(q["target"] in taught_names and q["success"] for q in ev_p["queries"])
     del g2, m2
     lap('persistence')
