@@ -136,7 +136,8 @@ def spacing(g) -> float:
 def vote_depth_tol(g) -> float:
     """Least depth difference (m) at which a keyframe's depth says a Gaussian is not its surface
     (carve.mask_votes' depth_tol_abs): carve's own 2 cm, or a photo map's depth resolution (the depth
-    one pixel of disparity spans across its views, photo_fit.depth_resolution) where that is coarser.
+    one pixel of disparity spans across its views, geometry.conventions.depth_resolution, recorded
+    by photo_fit.photo_mapper) where that is coarser.
     A photo map's keyframe depth is its own expected depth, and the photos place an object's
     Gaussians only that well in depth."""
     from .carve import DEPTH_TOL_ABS

@@ -62,7 +62,7 @@ class PhotoFit:
     decided: int = 0                                   # step the stop was decided (then the held-out views joined)
     heldout: list = field(default_factory=list)        # indices of the views held out until then
     init: str = ""                                     # what the Gaussians started from
-    depth_resolution: float = 0.0                      # m: depth one pixel of disparity spans (depth_resolution)
+    depth_resolution: float = 0.0                      # m: depth a pixel of disparity spans (geometry.conventions)
 
 
 def scene_extent(views: list[PhotoView], depth: float | None = None) -> float:
