@@ -117,8 +117,7 @@ class MapAdmin:
             self._refined_iters = 0
             self._kf_count = len(new.keyframes)
             self.last_error, self.last_result = "", {}
-            self._snap = None            # nothing of the old map is reused
-            self._publish()
+            self._publish(fresh=True)    # nothing of the old map is reused
         finally:
             self.lock.release()
         return new

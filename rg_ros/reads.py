@@ -70,11 +70,13 @@ class MapReads:
 
     # ------------------------------------------------------------------------------ publishing
 
-    def _publish(self) -> None:
-        """Make the live map's state the one readers see; call with the map lock held."""
+    def _publish(self, fresh: bool = False) -> None:
+        """Make the live map's state the one readers see; call with the map lock held. `fresh`: a new
+        map (load, reset), nothing of the old snapshot reused. Readers keep the old snapshot until
+        the new one is assigned: never None in between (a query then said "map is empty")."""
         if self.field is not None and hasattr(self.field, "sync"):
             self.field.sync()   # the field follows Gaussians added or pruned since its last step
-        self._snap = take_snapshot(self.mapper, self._snap)
+        self._snap = take_snapshot(self.mapper, None if fresh else self._snap)
         self._stale_since = None
 
     def _mark_stale(self) -> None:

@@ -176,8 +176,7 @@ class MapWorker(MapReads, MapAdmin, TeachWork, IdleWork):
             self._train_seconds, self._train_blocked, self._supervised_count = 0.0, "", 0
             self._refined_iters = 0
             self.last_error, self.last_result = "", {}
-            self._snap = None
-            self._publish()
+            self._publish(fresh=True)
         finally:
             self.lock.release()
 

@@ -180,6 +180,34 @@ def test_load_swaps_the_map_with_no_failed_query(worker, name, tmp_path, minilm_
     assert worker.ground(name, timeout=HOLD).success
 
 
+def test_a_query_while_load_publishes_the_new_map_reads_the_old_one(worker, name, tmp_path, monkeypatch):
+    """Load assigns the new map's snapshot in one step: a query arriving while it is being made
+    (held open here) reads the old map, never an absent one (CI once saw "map is empty" during load)."""
+    from rg_core.map.store import save_map
+    from rg_ros import reads
+
+    again = save_map(worker.mapper, tmp_path / "again.rgmap")
+    entered, release = threading.Event(), threading.Event()
+    real = reads.take_snapshot
+
+    def held(mapper, previous=None):
+        entered.set()
+        assert release.wait(HOLD)
+        return real(mapper, previous)
+
+    monkeypatch.setattr(reads, "take_snapshot", held)
+    t = threading.Thread(target=worker.load, args=(again,))
+    t.start()
+    try:
+        assert entered.wait(HOLD), "load published nothing"
+        r = answered_while(release, worker, name)
+        assert r.success and r.objects, r.message
+    finally:
+        release.set()
+        t.join(HOLD)
+    assert worker.ground(name, timeout=HOLD).success
+
+
 def test_pause_counts_frames_maps_nothing_and_still_answers(minilm_map_file, name):
     w = make_worker(minilm_map_file)
     try:
