@@ -27,10 +27,9 @@ same: the time to a queryable field (photo fit + supervision + field) against th
 there (N/2 random initial Gaussians, a threshold that clones or splits all at step 10); its peak RSS
 (VmHWM) and the Gaussians reached. A step profile (render forward/backward, SSIM forward/backward at
 the first scene's fitted Gaussians) says where the fit's time goes.
---photo-iters (default 1000) is every photo fit's step ceiling: the config's own 7000 with its stop test
-(`--photo-iters 0`) took 31 min on seed 801's 17 views (2 busy cores), too long for one run of all parts.
---big-iters (default 3000) is the big scene's: 30 steps a view against 50 on the 20-view scenes (at
-1000 it was 6.5 points short of its RGB-D map, at 3000 2.1 points above it, queryable in 384 s).
+Every fit runs at the config's own step ceiling (photo_fit.step_ceiling: 35 steps a training view
+within 1000-7000: 1000 on the 20-view scenes' 17, 3045 on the 100-view scene's 87) unless --photo-iters N sets photo.iters
+(and turns the per-view rule off) for all fits, or --big-iters N for the big scene alone.
 Targets: PSNR within 1.5 dB, explicit mIoU within 5 points of the RGB-D figure, the big scene queryable
 in <= 900 s, peak RSS <= 3 GB at 300k Gaussians. Writes photo.png (held-out PSNR against seconds of
 every fit, test PSNR and mIoU bars) and photo.json to --out.
@@ -58,8 +57,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from _common import add_output_flags, finish, pyplot, save_figure  # noqa: E402
 
 PSNR_GAP_DB, MIOU_GAP, BIG_LIMIT_S, RSS_LIMIT_GB = 1.5, 5.0, 900.0, 3.0
-PHOTO_ITERS = 1000   # the benchmark's step ceiling of every photo fit (the config's is 7000)
-BIG_ITERS = 3000     # ... and of the 100-view scene's: 30 steps a view (1000 left it 6.5 points short)
 
 
 # ------------------------------------------------------------------------------ scenes
@@ -128,7 +125,7 @@ def build_and_score(scene, score_scene, cfg, supervision: str) -> tuple[dict, ob
     built = (rep.get("map") or {}).get("built") or {}
     if built.get("kind") == "photo":
         p = built["photo"]
-        R.update(fit_init=p.get("init", ""), fit_steps=p["steps"], fit_stopped=p["stopped"], fit_s=round(p["seconds"], 1), cloned=p["cloned"],
+        R.update(fit_init=p.get("init", ""), fit_steps=p["steps"], fit_ceiling=p["ceiling"], fit_stopped=p["stopped"], fit_s=round(p["seconds"], 1), cloned=p["cloned"],
                  split=p["split"], pruned=p["pruned"], curve=p["heldout_psnr"],
                  heldout_psnr_db=round(p["heldout_psnr"][-1][2], 2) if p["heldout_psnr"] else float("nan"),
                  s_per_step=round(p["seconds"] / max(p["steps"], 1), 3))
@@ -178,7 +175,7 @@ def run_scene(key: str, path: Path, kind: str, args, profile: bool) -> dict:
     cfg = RGConfig()
     iters = args.big_iters if kind == "big" and args.big_iters else args.photo_iters
     if iters:
-        cfg.photo = dataclasses.replace(cfg.photo, iters=iters)
+        cfg.photo = dataclasses.replace(cfg.photo, iters=iters, steps_per_view=0)
     for kv in args.photo_set or ():
         k, _, v = kv.partition("=")
         cfg.photo = dataclasses.replace(cfg.photo, **{k: type(getattr(cfg.photo, k))(v)})
@@ -187,7 +184,7 @@ def run_scene(key: str, path: Path, kind: str, args, profile: bool) -> dict:
     photo = withhold_depth(rgbd, args.points)
     R: dict = {"scene": key, "kind": kind, "train_views": len(rgbd.train), "test_views": len(rgbd.test),
                "objects": len(rgbd.objects), "init": f"{len(photo.points.xyz)} points" if photo.points is not None
-               else "no points: triangulated at the poses, else random", "photo_iters": cfg.photo.iters}
+               else "no points: triangulated at the poses, else random"}
     t0 = time.perf_counter()
     r, m = build_and_score(rgbd, rgbd, cfg, sup)
     R["rgbd"] = r
@@ -331,14 +328,15 @@ def print_table(rows: list[dict], file=None) -> None:
 
 def to_rows(report: dict) -> tuple[list[dict], str]:
     sc = [s for s in report["scenes"] if "error" not in s]
-    iters = sorted({s["photo_iters"] for s in sc})
+    iters = [s["photo"]["fit_ceiling"] for s in sc]
+    rule = f"photo.iters {report['photo_iters']}" if report["photo_iters"] else "the config's: 35 a view within 1000-7000"
     errs = [f"{s['scene']} failed" for s in report["scenes"] if "error" in s]
     big = "no big scene" if report["skip_big"] else f"big: seed {report['big_seed']}, {report['big_views']} views"
     notes = (f"{report['supervision']} supervision; synth seeds {' '.join(map(str, report['seeds'])) or 'none'} "
              f"({report['views']} views, 320x240, 7 objects), {report['ycbv']}, "
              f"{big}; "
              f"depth withheld (synthetic: {report['points']} points3d.ply points, BOP: triangulated at its poses); photo fit "
-             f"ceiling {'/'.join(map(str, iters))} steps{' (config: 7000)' if report['photo_iters'] else ''}; "
+             f"ceiling {'/'.join(map(str, iters))} steps ({rule}); "
              f"PSNR on the RGB-D test frames; RSS: {report.get('rss_note', 'not run')}"
              f"{'; ' + ', '.join(errs) if errs else ''}; wall {report['wall_s']:.0f} s")
     return table(report), notes
@@ -384,14 +382,14 @@ def main() -> int:
                     help='a YCB-Video scene in BOP layout ("none": skip)')
     ap.add_argument("--big-views", type=int, default=100, help="views of the time-to-queryable scene")
     ap.add_argument("--big-seed", type=int, default=803)
-    ap.add_argument("--big-iters", type=int, default=BIG_ITERS,
-                    help="the big scene's photo.iters (0: --photo-iters): 1000 steps are 11 a view there")
+    ap.add_argument("--big-iters", type=int, default=0,
+                    help="the big scene's photo.iters, per-view rule off (0: as --photo-iters)")
     ap.add_argument("--skip-big", action="store_true", help="no time-to-queryable scene")
     ap.add_argument("--rss-gaussians", type=int, default=300000, help="max_gaussians of the peak-RSS fit (0: skip)")
     ap.add_argument("--skip-rss", action="store_true")
-    ap.add_argument("--photo-iters", type=int, default=PHOTO_ITERS,
-                    help=f"photo.iters, the fit's step ceiling (0: the config's own, 7000: hours on 2 cores); "
-                         f"default {PHOTO_ITERS}: the default run takes 20-60 min on a busy 2-core CPU")
+    ap.add_argument("--photo-iters", type=int, default=0,
+                    help="photo.iters of every fit, per-view rule off (0: the config's step ceiling, 35 steps a view "
+                         "within 1000-7000; the default run takes 20-40 min on 2 cores)")
     ap.add_argument("--photo-set", action="append", metavar="KEY=VALUE",
                     help="a photo-fit setting of every photo build (config photo.KEY), e.g. depth_smoothness=0.1")
     ap.add_argument("--points", type=int, default=1500, help="sparse points kept of a synthetic scene's points3d.ply")

@@ -18,7 +18,8 @@ from rg_core.io.captures import read_scene
 from rg_core.io.ply import read_ply
 from rg_core.map.frames import prepare_frame
 from rg_core.map.gaussians import PARAMS
-from rg_core.map.photo_fit import PhotoFitter, PhotoView, gaussians_from_points, initial_points, rendered_depth
+from rg_core.map.photo_fit import (PhotoFitter, PhotoView, gaussians_from_points, initial_points, rendered_depth,
+                                   step_ceiling)
 from rg_core.map.photo_losses import depth_smoothness, ssim
 
 WIDTH = 80
@@ -83,9 +84,20 @@ def test_max_gaussians_bounds_density_control(scene):
 
 def test_stop_test_ends_the_fit_before_the_ceiling(scene):
     train = [v for v, _ in scene["train"]]
-    cfg = dataclasses.replace(CFG, iters=2000, densify_until=0.05, converge_db=0.5, converge_window=80)
+    cfg = dataclasses.replace(CFG, iters=2000, steps_per_view=0, densify_until=0.05, converge_db=0.5, converge_window=80)
     fit = PhotoFitter(train, cfg, MapConfig(width=WIDTH), scene["points"], scene["colors"]).fit(progress=False)
-    assert fit.stopped == "converged" and fit.steps < cfg.iters, (fit.stopped, fit.steps)
+    assert fit.ceiling == 2000 and fit.stopped == "converged" and fit.steps < fit.ceiling, (fit.stopped, fit.steps)
+
+
+def test_step_ceiling_grows_with_the_views_between_its_bounds(scene):
+    """Defaults: 1000 steps up to 28 views, 35 a view above, 7000 at most; steps_per_view 0: iters."""
+    c = PhotoMapConfig()
+    assert [step_ceiling(c, n) for n in (1, 17, 28, 29, 87, 199, 200, 5000)] == [1000, 1000, 1000, 1015, 3045, 6965,
+                                                                                   7000, 7000]
+    assert step_ceiling(dataclasses.replace(c, steps_per_view=0), 100) == 7000
+    assert step_ceiling(dataclasses.replace(c, iters=240), 100) == 240          # iters stays the hard ceiling
+    train = [v for v, _ in scene["train"]]
+    assert PhotoFitter(train, c, MapConfig(width=WIDTH), scene["points"], scene["colors"]).cfg.iters == 1000
 
 
 def test_random_initialisation_without_points_learns(scene):

@@ -124,7 +124,13 @@ class PhotoMapConfig:
     counted, not seconds, so a seed stops at the same step on any CPU."""
 
     iters: Annotated[int, Interval(ge=1)] = 7000
-    """Ceiling on optimisation steps (one view per step); the held-out test usually ends it first."""
+    """Hard ceiling on optimisation steps (one view per step)."""
+    steps_per_view: Annotated[int, Interval(ge=0)] = 35
+    """The fit's ceiling is min(iters, max(min_iters, steps_per_view x views)) (0: iters alone), so a
+    capture's time grows with its views: 100 views at 320x240 are queryable within 15 min on 2 cores
+    (docs/benchmarks.md, bench_photo). The held-out test may end it earlier."""
+    min_iters: Annotated[int, Interval(ge=1)] = 1000
+    """Least ceiling of a small capture (17 views: 59 steps a view)."""
     lambda_dssim: Annotated[float, Interval(ge=0.0, le=1.0)] = 0.2
     """Loss = (1 - lambda) L1 + lambda (1 - SSIM), 3DGS's weighting."""
     depth_smoothness: Annotated[float, Interval(ge=0.0)] = 0.0

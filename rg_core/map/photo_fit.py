@@ -18,14 +18,14 @@ field first, features after).
 - Stop: a share of the views (`holdout_views`, evenly spaced) is held out whole, so the test measures
   novel views, not interpolation between trained pixels; their PSNR is measured every `check_every`
   steps, and once density control ended, the stop is decided when the best PSNR gained less than
-  `converge_db` over `converge_window` steps, or at (1 - `join_share`) x `iters`. The held-out views
-  are then trained on with the others for a last `join_share` of the steps. tqdm shows progress.
+  `converge_db` over `converge_window` steps, or at (1 - `join_share`) of the ceiling (step_ceiling:
+  grows with the views). The held-out views then join for the last `join_share` of the steps.
 """
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -63,6 +63,7 @@ class PhotoFit:
     heldout: list = field(default_factory=list)        # indices of the views held out until then
     init: str = ""                                     # what the Gaussians started from
     depth_resolution: float = 0.0                      # m: depth a pixel of disparity spans (geometry.conventions)
+    ceiling: int = 0                                   # step ceiling of this fit (step_ceiling)
 
 
 def scene_extent(views: list[PhotoView], depth: float | None = None) -> float:
@@ -133,6 +134,11 @@ def gaussians_from_points(points: np.ndarray, colors: np.ndarray, init_opacity: 
     return g
 
 
+def step_ceiling(cfg: PhotoMapConfig, views: int) -> int:
+    """The fit's steps at most: min(iters, max(min_iters, steps_per_view x views)), or iters."""
+    return min(cfg.iters, max(cfg.min_iters, cfg.steps_per_view * views)) if cfg.steps_per_view else cfg.iters
+
+
 class PhotoFitter:
     """fit() runs the optimisation; one instance per map."""
 
@@ -140,8 +146,9 @@ class PhotoFitter:
                  points: np.ndarray | None = None, colors: np.ndarray | None = None, depth_hint: float | None = None):
         if not views:
             raise ValueError("photo map: no views to fit")
-        self.views, self.cfg, self.map_cfg = views, cfg or PhotoMapConfig(), map_cfg or MapConfig()
-        c = self.cfg
+        cfg = cfg or PhotoMapConfig()
+        self.views, self.map_cfg = views, map_cfg or MapConfig()
+        self.cfg = c = replace(cfg, iters=step_ceiling(cfg, len(views)))
         self.rng = np.random.default_rng(c.seed)
         self.gen = torch.Generator().manual_seed(c.seed)
         if points is None or len(points) < 4:
@@ -296,7 +303,7 @@ class PhotoFitter:
             bar.update(1)
         bar.close()
         return PhotoFit(self.g, hist, stopped, min(it, end), time.perf_counter() - t0, dict(self.totals),
-                        decided=self.decided or min(it, end), heldout=list(self.held))
+                        decided=self.decided or min(it, end), heldout=list(self.held), ceiling=c.iters)
 
     def _converged(self, hist: list, until: int) -> bool:
         c = self.cfg
@@ -386,8 +393,8 @@ def photo_mapper(frames, map_cfg: MapConfig | None = None, cfg: PhotoMapConfig |
 def fit_summary(fit: PhotoFit) -> dict:
     """What a report says of a fit: steps, why it stopped, seconds, Gaussians, density control and
     the held-out PSNR against time (the curve `rg report` plots)."""
-    return {"steps": fit.steps, "stopped": fit.stopped, "decided": fit.decided, "heldout_views": fit.heldout,
-            "init": fit.init, "depth_resolution_m": round(fit.depth_resolution, 5),
+    return {"steps": fit.steps, "ceiling": fit.ceiling, "stopped": fit.stopped, "decided": fit.decided,
+            "heldout_views": fit.heldout, "init": fit.init, "depth_resolution_m": round(fit.depth_resolution, 5),
             "seconds": round(fit.seconds, 3),
             "gaussians": len(fit.gaussians), **fit.totals,
             "heldout_psnr": [[h[0], round(h[1], 3), round(h[2], 3), h[3]] for h in fit.history]}
