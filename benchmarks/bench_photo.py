@@ -329,13 +329,13 @@ def print_table(rows: list[dict], file=None) -> None:
 def to_rows(report: dict) -> tuple[list[dict], str]:
     sc = [s for s in report["scenes"] if "error" not in s]
     iters = [s["photo"]["fit_ceiling"] for s in sc]
-    rule = f"photo.iters {report['photo_iters']}" if report["photo_iters"] else "the config's: 35 a view within 1000-7000"
+    rule = f"photo.iters {report['photo_iters']}" if report["photo_iters"] else "config: 35 a view, 1000-7000"
     errs = [f"{s['scene']} failed" for s in report["scenes"] if "error" in s]
     big = "no big scene" if report["skip_big"] else f"big: seed {report['big_seed']}, {report['big_views']} views"
     notes = (f"{report['supervision']} supervision; synth seeds {' '.join(map(str, report['seeds'])) or 'none'} "
              f"({report['views']} views, 320x240, 7 objects), {report['ycbv']}, "
              f"{big}; "
-             f"depth withheld (synthetic: {report['points']} points3d.ply points, BOP: triangulated at its poses); photo fit "
+             f"depth withheld (synthetic: {report['points']} sparse points, BOP: triangulated); photo fit "
              f"ceiling {'/'.join(map(str, iters))} steps ({rule}); "
              f"PSNR on the RGB-D test frames; RSS: {report.get('rss_note', 'not run')}"
              f"{'; ' + ', '.join(errs) if errs else ''}; wall {report['wall_s']:.0f} s")
