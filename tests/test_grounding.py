@@ -274,6 +274,32 @@ def test_votes_allow_a_photo_maps_depth_resolution(grounder, built, expect):
     assert Grounder(mapper, grounder.field, RGConfig()).vote_depth_tol() == pytest.approx(expect)
 
 
+@pytest.mark.parametrize("built, link_spacing, expect", [({}, 3.0, None), ({"kind": "rgbd"}, 3.0, None),
+                                                         ({"kind": "photo", "photo": {"depth_resolution_m": 0.15}}, 3.0, 0.15),
+                                                         ({"kind": "photo", "photo": {"depth_resolution_m": 1e-4}}, 3.0, None),
+                                                         ({"kind": "photo", "photo": {"depth_resolution_m": 0.15}}, 0.0, 0.0)])
+def test_links_are_no_finer_than_a_photo_maps_depth_resolution(grounder, built, link_spacing, expect):
+    """The photos place a Gaussian only to their depth resolution along its ray: the links that keep a
+    group one piece step at least that far (an object whose surface the fit left in two layers 10 cm
+    apart stays whole), RGB-D maps keep link_spacing x spacing, and link_spacing 0 keeps no links."""
+    import copy
+    import dataclasses
+
+    from rg_core.grounding.boxes import connected_to
+
+    mapper = copy.copy(grounder.mapper)
+    mapper.built = built
+    cfg = RGConfig()
+    cfg.ground = dataclasses.replace(cfg.ground, link_spacing=link_spacing)
+    g = Grounder(mapper, grounder.field, cfg)
+    link = g.link_length()
+    assert link == pytest.approx(3.0 * g.spacing() if expect is None else expect)
+    if link > 0:
+        layers = np.array([[x, 0.0, z] for z in (1.0, 1.1) for x in np.arange(0.0, 0.05, 0.005)])   # [20, 3]
+        whole = connected_to(layers, layers[0], link).all()
+        assert whole == (link >= 0.1), (link, whole)
+
+
 def test_text_embeddings_kept_are_bounded(grounder, monkeypatch):
     """Hours of distinct queries: the Grounder keeps the newest TEXT_CACHE_SIZE text embeddings, and
     an evicted text embeds again to the same row."""

@@ -96,7 +96,8 @@ class GroundConfig:
     link_spacing: float = 3.0
     """A group keeps the Gaussians connected in space to the most relevant point by steps of at most
     this many map spacings (median nearest-neighbour distance, at least the median largest Gaussian
-    axis: Grounder.spacing); 0 keeps the whole feature cluster."""
+    axis: Grounder.spacing), and at least a photo map's depth resolution (Grounder.link_length); 0
+    keeps the whole feature cluster."""
     anchor_support: bool = True
     """... and of those pieces the one with the most Gaussians the reference view sees inside its mask
     (else the most relevant point's piece): one pixel's depth can lie at a thin object's rim."""

@@ -133,6 +133,16 @@ def spacing(g) -> float:
     return g.cache.get("spacing", g.gcfg.seed, make)
 
 
+def link_length(g) -> float:
+    """Longest step (m) of the chains that keep a group one piece in space (boxes.connected_to):
+    ground.link_spacing map spacings, at least a photo map's depth resolution (0: no links).
+    The photos place each Gaussian only that well along its ray, so shorter steps cut one object
+    by depth error: on YCB-Video 0002 (0.23 m) the banana kept 205 of its 304 voted Gaussians."""
+    link = g.gcfg.link_spacing * spacing(g)
+    photo = (getattr(g.mapper, "built", None) or {}).get("photo") or {}
+    return max(link, float(photo.get("depth_resolution_m", 0.0))) if link > 0 else 0.0
+
+
 def vote_depth_tol(g) -> float:
     """Least depth difference (m) at which a keyframe's depth says a Gaussian is not its surface
     (carve.mask_votes' depth_tol_abs): carve's own 2 cm, or a photo map's depth resolution (the depth

@@ -240,7 +240,7 @@ def object_at(g, point, scale: float | None = None, rule: str = "") -> tuple[Gro
         support, against = (v.inside > v.outside)[inside], (v.outside > v.inside)[inside]
         ids = cand[inside]
         views = object_views(g, means[ids], sizes(ids)) or views
-    link = c.link_spacing * g.spacing()
+    link = g.link_length()
     if link > 0 and len(ids) > 1:
         ids = ids[connected_to(means[ids], p, link, support, against)]
     if c.outlier_mads > 0 and len(ids) > 3:

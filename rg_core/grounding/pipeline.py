@@ -157,6 +157,10 @@ class Grounder:
         """The map's median nearest-neighbour distance between Gaussians (m)."""
         return derived.spacing(self)
 
+    def link_length(self) -> float:
+        """Longest step (m) of the links that keep a group one piece in space (0: none)."""
+        return derived.link_length(self)
+
     def vote_border(self) -> int:
         """Mask growth (px) for the votes: ground.vote_border_px, or measured with -1."""
         return derived.vote_border(self)

@@ -262,7 +262,7 @@ def objects(g, ref: Reference, pk: Peak, found: list[tuple[np.ndarray, float]], 
     gs = g.mapper.gaussians
     means = gs.means.detach().numpy()                                                      # [N, 3]
     kf = ref.keyframe
-    link = g.gcfg.link_spacing * g.spacing()
+    link = g.link_length()
     views = carve_views(g, ref)
     ref_view = keyframe_view(kf, ref.mask.numpy()) if g.gcfg.anchor_support else None
     border = g.vote_border() if views or ref_view is not None else 0
