@@ -154,6 +154,23 @@ def test_one_name_for_two_objects(minilm_map_file, clicks):
     assert len(g.mapper.taught) == 2
 
 
+def test_a_plural_over_several_names_says_each(minilm_map_file, clicks):
+    """'the mugs' over a taught 'blue mug' and 'red mug' returns both and says which is which, not
+    'two taught under' the first one's name."""
+    from rg_core.grounding import teach
+
+    g = fresh(minilm_map_file)
+    teach.teach(g, "blue mug", point=clicks["orange cup"].point)
+    teach.teach(g, "red mug", point=clicks["peach"].point)
+    both = g.ground("the mugs")
+    assert both.success and len(both.objects) == 2, both.message
+    assert "'blue mug'" in both.message and "'red mug'" in both.message, both.message
+    assert "taught under that name" not in both.message
+    assert both.explanation.count("was taught by a person at") == 2, both.explanation
+    one = g.ground("the blue mug")
+    assert len(one.objects) == 1 and "red mug" not in one.message + one.explanation, one.message
+
+
 def test_persistence_across_save_load_frames_and_eviction(taught, synth_scene, tmp_path):
     from rg_core.grounding.pipeline import Grounder
     from rg_core.map.store import load_map, save_map
