@@ -447,6 +447,30 @@ def test_views_agree_on_the_whole_object(start):
     assert out[0][2:] == (1, 0.08)
 
 
+@pytest.mark.parametrize("levels, scales, expect", [
+    ([2, 1, 0], [0.09, 0.04, 0.02], 1),    # objects that touch: the object level's mask
+    ([2, 1, 0], [0.07, 0.04, 0.02], 0),    # the group mask is the object
+    ([2, 0], [0.09, 0.04], 1),             # no object-level mask, the part level cut the touching objects
+    ([2, 0], [0.07, 0.04], 0),             # ... a part of one object: the group mask is the object
+    ([1, 0], [0.05, 0.02], 0),             # no group-level mask
+    ([0], [0.02], 0)])
+def test_the_whole_object_mask_at_a_pixel(levels, scales, expect):
+    """_object_mask: the group level's mask unless it spans more than twice the scale of the object
+    level's there (objects that touch); with no object-level mask (the object level cut nothing, as
+    on YCB-Video 0002's pile of a banana, a wood block and two boxes), the part level's by the same test."""
+    from types import SimpleNamespace
+
+    from rg_core.grounding.locate import _object_mask
+
+    n = len(levels)
+    masks = np.zeros((n, 8, 8), bool)
+    for j in range(n):
+        masks[j, : 8 - 2 * j] = True          # nested: the first mask the largest
+    sup = SimpleNamespace(masks=masks, levels=np.array(levels), scales=np.array(scales))
+    i, level, scale = _object_mask(sup, np.arange(n))
+    assert i == expect and level == levels[expect] and scale == pytest.approx(scales[expect])
+
+
 def test_views_that_agree_keep_their_choice():
     """Every view chose the joined mask: nothing disagrees, so nothing changes (ties keep the first
     choice), and a single view is left as it is."""

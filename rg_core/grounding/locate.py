@@ -4,7 +4,8 @@ of point and teach (point.py answers with it, teach.py finds taught objects agai
 The scale rule (docs/pipeline.md, "Point and teach"): the keyframes that see the point (their depth
 agrees with it) each give the supervision mask holding its pixel that is the whole object (the
 largest at the group level, cut at depth jumps, unless it spans more than twice the object level's
-scale: objects that touch, then the object level's), re-chosen by the views' agreement (_agreeing),
+scale: objects that touch, then the object level's; with no object-level mask there, the part
+level's the same way), re-chosen by the views' agreement (_agreeing),
 and the object's scale s is the median of those masks' physical scales; with no keyframe seeing the
 point, the median scale of the map's object-level masks. The group is the cluster of instance features at s holding the feature of the
 Gaussian nearest the point, voted on by those masks (seen outside them more often than inside:
@@ -131,13 +132,18 @@ def _agreeing(covering: list, sups: list, holds: list, rounds: int = AGREE_ROUND
 def _object_mask(sup, hold: np.ndarray) -> tuple[int, int, float]:
     """(index, level, scale) of the mask among `hold` (a pixel's masks) that is its whole object:
     the largest of the group level (2: cut at depth jumps), unless it spans more than
-    TOUCHING x the object level's (1) scale (objects that touch), then the largest of level 1,
-    else the largest of any level."""
+    TOUCHING x the object level's (1) scale (objects that touch), then the largest of level 1;
+    with no level-1 mask there (the object level cut nothing, and equal masks keep the group's),
+    the largest of level 0 when the group's spans more than TOUCHING x its scale (a banana against
+    a wood block on YCB-Video: one group and object mask, a banana part mask); else the largest
+    of any level."""
     by = {lv: max((j for j in hold if int(sup.levels[j]) == lv), key=lambda j: int(sup.masks[j].sum()), default=None)
           for lv in (2, 1, 0)}
     i = by[2]
     if i is None or (by[1] is not None and sup.scales[i] > TOUCHING * sup.scales[by[1]]):
         i = by[1]
+    elif by[1] is None and by[0] is not None and sup.scales[i] > TOUCHING * sup.scales[by[0]]:
+        i = by[0]   # touching objects the object level did not cut (it equals the group mask): the part level did
     if i is None:
         i = max(hold, key=lambda j: int(sup.masks[j].sum()))
     return int(i), int(sup.levels[i]), float(sup.scales[i])
