@@ -139,11 +139,12 @@ def _object_mask(sup, hold: np.ndarray) -> tuple[int, int, float]:
     of any level."""
     by = {lv: max((j for j in hold if int(sup.levels[j]) == lv), key=lambda j: int(sup.masks[j].sum()), default=None)
           for lv in (2, 1, 0)}
+    finer = by[1] if by[1] is not None else by[0]   # no object-level mask: it equalled the group's
     i = by[2]
-    if i is None or (by[1] is not None and sup.scales[i] > TOUCHING * sup.scales[by[1]]):
+    if i is None:
         i = by[1]
-    elif by[1] is None and by[0] is not None and sup.scales[i] > TOUCHING * sup.scales[by[0]]:
-        i = by[0]   # touching objects the object level did not cut (it equals the group mask): the part level did
+    elif finer is not None and sup.scales[i] > TOUCHING * sup.scales[finer]:
+        i = finer
     if i is None:
         i = max(hold, key=lambda j: int(sup.masks[j].sum()))
     return int(i), int(sup.levels[i]), float(sup.scales[i])

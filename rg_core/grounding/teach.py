@@ -212,11 +212,12 @@ def answer(g, query: str, max_results: int = 1, reasoning: str = "") -> Groundin
                           scale=float(t.scale), evidence={"taught": 1.0})
     n = sum(len(o.gaussian_ids) for o in objs)
     names = list(dict.fromkeys(x.name for x in found))   # "the screwdrivers": a flat and a phillips one
-    res.message = (f"{len(objs)} group(s) for {t.name!r}, {n} Gaussians; taught by a person"
-                   + (f" ({len(found)} taught under that name)" if len(found) > 1 else "")
-                   if len(names) == 1 else
-                   f"{len(objs)} group(s) for {query.strip()!r}, {n} Gaussians; taught by a person as "
-                   + ", ".join(repr(x) for x in names))
+    if len(names) == 1:
+        res.message = (f"{len(objs)} group(s) for {t.name!r}, {n} Gaussians; taught by a person"
+                       + (f" ({len(found)} taught under that name)" if len(found) > 1 else ""))
+    else:
+        res.message = (f"{len(objs)} group(s) for {query.strip()!r}, {n} Gaussians; taught by a person as "
+                       + ", ".join(repr(x) for x in names))
     res.explanation = ((reasoning + " " if reasoning else "") + " ".join(
         f"{x.name!r} was taught by a person at ({x.point[0]:.3f}, {x.point[1]:.3f}, {x.point[2]:.3f}); "
         f"found again there at its {x.rule or f'scale {x.scale:.3f} m'}." for x in found)
