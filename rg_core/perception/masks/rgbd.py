@@ -43,12 +43,12 @@ class RGBDMaskConfig:
     dedupe_iou: float = 0.9
     min_stability: float = 0.5
     object_merge: bool = True         # level 1 by boundary votes over part segments; False: colour/crease cut
-    merge_offsets: tuple[int, ...] = (2, 3, 4, 5)  # pixel offsets across a boundary that vote
+    merge_offsets: tuple[int, ...] = (1, 2, 3)  # pixel offsets across a boundary that vote
     merge_concave: float = 0.1        # a vote is concave below -this (LCCP's (n_a - n_b) . d)
     merge_step: float = 0.8           # ... a step along the view where |n . d| exceeds this
     merge_share: float = 0.5          # segments join where at least this share of votes join ...
     merge_min_votes: int = 6          # ... and at least this many do
-    normal_window: int = 7            # box window (px) that smooths the points under the normals
+    normal_window_m: float = 0.008    # box window (m at the view's median depth; 3-9 px) smoothing the normals
     min_part_area: float = 0.0002     # smaller part segments join their main neighbour first
 
 
@@ -121,6 +121,14 @@ def _smooth_normals(pts: np.ndarray, valid: np.ndarray, win: int) -> np.ndarray:
     sp = cv2.boxFilter(pts * w[..., None], -1, (win, win), normalize=False) / np.maximum(den, 1e-9)[..., None]
     n = _normals(sp, valid & (den > 0.5 * win * win))
     return np.where(((n * pts).sum(-1) > 0)[..., None], -n, n)
+
+
+def _window_px(metres: float, K: np.ndarray, z: np.ndarray) -> int:
+    """An odd window in pixels (3-9) spanning `metres` at the median depth of `z` (3 when empty)."""
+    if not len(z):
+        return 3
+    px = metres * float(K[0, 0]) / max(float(np.median(z)), 1e-6)
+    return int(np.clip(2 * np.floor(px / 2) + 1, 3, 9))
 
 
 def _pairs(lab: np.ndarray, offsets):
@@ -254,7 +262,7 @@ class RGBDMaskGenerator(MaskGenerator):
         if cfg.object_merge:
             parts = _absorb_small(self._level(keep, jumps, angs, cols, cfg.normal_crease_deg[2], cfg.color_edge[2]),
                                   jumps, max(4, int(cfg.min_part_area * H * W)))
-            nrm = _smooth_normals(pts, valid, cfg.normal_window)
+            nrm = _smooth_normals(pts, valid, _window_px(cfg.normal_window_m, K, depth[valid]))
             z = np.where(valid, depth, 0.0).astype(np.float64)
         for level, crease, color in zip((2, 1, 0), cfg.normal_crease_deg, cfg.color_edge):
             if level == 1 and cfg.object_merge:
