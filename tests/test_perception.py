@@ -130,65 +130,6 @@ def test_a_flat_object_on_a_clean_table_is_not_swallowed_by_the_plane(height):
     assert best >= 0.9, best
 
 
-def _table_with_rods(rods, noise: float = 0.0):
-    """A grey table 0.6 m away; `rods` = [(row, col0, col1, radius px, rgb)]: half-cylinders lying
-    along x (1 px = 2 mm here). -> (rgb, depth, [mask per rod])."""
-    H, W = 240, 320
-    v, u = np.mgrid[0:H, 0:W]
-    height = np.zeros((H, W))
-    rgb = np.full((H, W, 3), 128, np.uint8)
-    masks = []
-    for row, c0, c1, r, colour in rods:
-        m = (np.abs(v - row) < r) & (u >= c0) & (u < c1)
-        h = 0.002 * np.sqrt(np.clip(r * r - (v - row) ** 2, 0, None))
-        height = np.where(m, np.maximum(height, h), height)
-        rgb[m] = colour
-        masks.append(m)
-    depth = 0.6 - height + (np.random.default_rng(0).normal(0.0, noise, (H, W)) if noise else 0.0)
-    return rgb, depth.astype(np.float32), masks
-
-
-def _best(masks, gt, level):
-    return max((float((m.mask & gt).sum() / (m.mask | gt).sum()) for m in masks if m.level == level), default=0.0)
-
-
-def test_a_two_coloured_tool_is_one_object_and_two_parts():
-    # a knife (red handle, grey blade, one smooth surface) lying against a green rod: depth alone keeps
-    # them together; the object level joins handle and blade but not the rod, the part level keeps
-    # handle and blade apart; the older colour cut at the object level did not join the knife
-    from rg_core.perception.masks.rgbd import RGBDMaskConfig, RGBDMaskGenerator
-
-    rgb, depth, (handle, blade, rod) = _table_with_rods([(120, 90, 160, 10, (200, 30, 30)), (120, 160, 240, 10, (60, 60, 70)),
-                                                         (139, 80, 250, 10, (40, 160, 40))])
-    knife = handle | blade
-    masks = RGBDMaskGenerator().generate(rgb, depth, K)
-    assert _best(masks, knife | rod, 2) >= 0.9
-    assert _best(masks, knife, 1) >= 0.9 and _best(masks, rod, 1) >= 0.9
-    assert min(_best(masks, handle, 0), _best(masks, blade, 0)) >= 0.85
-    old = RGBDMaskGenerator(RGBDMaskConfig(object_merge=False)).generate(rgb, depth, K)
-    assert _best(old, knife, 1) < 0.6
-
-
-@pytest.mark.parametrize("noise", [0.0, 0.0005])
-def test_two_touching_rods_meet_in_a_concave_valley_and_stay_two_objects(noise):
-    rgb, depth, rods = _table_with_rods([(100, 80, 240, 10, (40, 160, 40)), (119, 80, 240, 10, (40, 40, 180))], noise)
-    masks = make_mask_generator("rgbd").generate(rgb, depth, K)
-    assert not any(np.abs(depth[r] - depth[rods[0]].mean()).max() > 0.2 for r in rods)
-    assert all(_best(masks, r, 1) >= 0.85 for r in rods), [_best(masks, r, 1) for r in rods]
-    assert all(float((m.mask & rods[0]).sum()) < 0.1 * rods[0].sum() or float((m.mask & rods[1]).sum()) < 0.1 * rods[1].sum()
-               for m in masks if m.level == 1)
-
-
-def test_object_merge_survives_empty_and_degenerate_depth():
-    from rg_core.perception.masks.rgbd import RGBDMaskGenerator
-
-    rgb = np.full((240, 320, 3), 90, np.uint8)
-    for depth in (np.zeros((240, 320), np.float32), np.full((240, 320), np.nan, np.float32),
-                  np.full((240, 320), 1e30, np.float32)):
-        masks = RGBDMaskGenerator().generate(rgb, depth, K)
-        assert all(m.mask.shape == depth.shape and np.isfinite(m.score) for m in masks)
-
-
 def test_a_noisy_tables_plane_keeps_the_ransac_distance_and_few_inliers_fall_back():
     from rg_core.perception.masks.rgbd import RGBDMaskConfig, _refit
 

@@ -6,11 +6,8 @@ connections are cut at depth jumps, at creases of the surface normal and at colo
 thresholds give SAM-like levels:
 
 - level 2 "group": cut at depth jumps only (objects that touch stay together) + the support planes,
-- level 1 "object": the part-level segments joined where most of their shared boundary is a smooth,
-  flat or convex surface (LCCP-like: Stein et al., CVPR 2014). Touching objects meet in a concave
-  valley or a step along the view; a knife's red handle and black blade, or a cup's rim, do not.
-  A vote over the whole boundary, not one pixel path, decides, so a leak does not join two objects,
-- level 0 "part": also cut at creases and colour edges.
+- level 1 "object": also cut at normal creases and strong colour edges,
+- level 0 "part": also cut at weaker colour edges.
 
 Each mask's confidence is its stability: the IoU of its best match when the thresholds are
 perturbed (as SAM's stability score). Near-identical masks are de-duplicated (IoU > 0.9).
@@ -42,14 +39,6 @@ class RGBDMaskConfig:
     max_masks: int = 40
     dedupe_iou: float = 0.9
     min_stability: float = 0.5
-    object_merge: bool = True         # level 1 by boundary votes over part segments; False: colour/crease cut
-    merge_offsets: tuple[int, ...] = (1, 2, 3)  # pixel offsets across a boundary that vote
-    merge_concave: float = 0.1        # a vote is concave below -this (LCCP's (n_a - n_b) . d)
-    merge_step: float = 0.8           # ... a step along the view where |n . d| exceeds this
-    merge_share: float = 0.5          # segments join where at least this share of votes join ...
-    merge_min_votes: int = 6          # ... and at least this many do
-    normal_window_m: float = 0.008    # box window (m at the view's median depth; 3-9 px) smoothing the normals
-    min_part_area: float = 0.0002     # smaller part segments join their main neighbour first
 
 
 def _normals(pts: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -114,93 +103,6 @@ def _refit(pts: np.ndarray, dist: np.ndarray, inliers: np.ndarray, cfg: RGBDMask
     return np.abs((pts - c) @ n), reach
 
 
-def _smooth_normals(pts: np.ndarray, valid: np.ndarray, win: int) -> np.ndarray:
-    """Unit normals [H, W, 3] of the points box-averaged over `win` px, turned to face the camera."""
-    w = valid.astype(np.float64)
-    den = cv2.boxFilter(w, -1, (win, win), normalize=False)
-    sp = cv2.boxFilter(pts * w[..., None], -1, (win, win), normalize=False) / np.maximum(den, 1e-9)[..., None]
-    n = _normals(sp, valid & (den > 0.5 * win * win))
-    return np.where(((n * pts).sum(-1) > 0)[..., None], -n, n)
-
-
-def _window_px(metres: float, K: np.ndarray, z: np.ndarray) -> int:
-    """An odd window in pixels (3-9) spanning `metres` at the median depth of `z` (3 when empty)."""
-    if not len(z):
-        return 3
-    px = metres * float(K[0, 0]) / max(float(np.median(z)), 1e-6)
-    return int(np.clip(2 * np.floor(px / 2) + 1, 3, 9))
-
-
-def _pairs(lab: np.ndarray, offsets):
-    """Yield (k, slices of p, slices of p + k right or down, ok [h, w]) where p and p + k lie in two
-    different segments."""
-    H, W = lab.shape
-    for k in offsets:
-        for dy, dx in ((0, k), (k, 0)):
-            a, b = (slice(0, H - dy), slice(0, W - dx)), (slice(dy, H), slice(dx, W))
-            ok = (lab[a] >= 0) & (lab[b] >= 0) & (lab[a] != lab[b])
-            if ok.any():
-                yield k, a, b, ok
-
-
-def _absorb_small(lab: np.ndarray, jumps, min_px: int) -> np.ndarray:
-    """Segments under `min_px` join the neighbour that shares most of their uncut 4-edges, if that
-    neighbour is larger (ties by id, so no cycles): texture and sensor noise leave such specks."""
-    for _ in range(4):
-        n = lab.max() + 1
-        if n <= 0:
-            return lab
-        size = np.bincount(lab[lab >= 0], minlength=n)
-        a = np.concatenate([lab[:, :-1][~jumps[0]], lab[:-1][~jumps[1]]])
-        b = np.concatenate([lab[:, 1:][~jumps[0]], lab[1:][~jumps[1]]])
-        m = (a >= 0) & (b >= 0) & (a != b)
-        a, b = np.concatenate([a[m], b[m]]), np.concatenate([b[m], a[m]])
-        up = (size[a] < min_px) & ((size[b] > size[a]) | ((size[b] == size[a]) & (b > a)))
-        if not up.any():
-            return lab
-        key, votes = np.unique(a[up].astype(np.int64) * n + b[up], return_counts=True)
-        ka, kb = key // n, key % n
-        order = np.lexsort((-kb, -votes, ka))            # per small segment: most shared edges first
-        ka, kb = ka[order], kb[order]
-        first = np.r_[True, ka[1:] != ka[:-1]]
-        target = np.arange(n)
-        target[ka[first]] = kb[first]
-        for _ in range(int(np.ceil(np.log2(n + 1))) + 1):   # follow chains to their end
-            target = target[target]
-        lab = np.where(lab >= 0, target[np.maximum(lab, 0)], -1)
-    return lab
-
-
-def _merge_parts(lab: np.ndarray, pts: np.ndarray, nrm: np.ndarray, z: np.ndarray, cfg: RGBDMaskConfig,
-                 concave: float) -> np.ndarray:
-    """Object-level labels [H, W]: part segments `lab` joined where their boundary votes join. Each
-    pixel pair across a boundary, k px apart, votes join when its depths are continuous, the step
-    between them is not along the normals (an occluding edge) and (n_a - n_b) . d > -concave."""
-    n = lab.max() + 1
-    if n <= 0:
-        return lab
-    A, B, J = [], [], []
-    for k, a, b, ok in _pairs(lab, cfg.merge_offsets):
-        za, zb = z[a][ok], z[b][ok]
-        cont = np.abs(za - zb) < k * (0.5 * cfg.depth_jump_rel * np.minimum(za, zb) + 0.002)
-        na, nb = nrm[a][ok], nrm[b][ok]
-        d = pts[a][ok] - pts[b][ok]
-        d /= np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
-        step = np.maximum(np.abs((na * d).sum(-1)), np.abs((nb * d).sum(-1))) > cfg.merge_step
-        J.append(cont & ~step & (((na - nb) * d).sum(-1) > -concave))
-        A.append(lab[a][ok]), B.append(lab[b][ok])
-    if not A:
-        return lab
-    a, b, j = np.concatenate(A), np.concatenate(B), np.concatenate(J)
-    key, inv, votes = np.unique(np.minimum(a, b).astype(np.int64) * n + np.maximum(a, b), return_inverse=True,
-                                return_counts=True)
-    joins = np.bincount(inv, j.astype(np.float64))
-    ok = (joins >= cfg.merge_share * votes) & (joins >= cfg.merge_min_votes)
-    g = coo_matrix((np.ones(int(ok.sum())), (key[ok] // n, key[ok] % n)), shape=(n, n))
-    comp = connected_components(g, directed=False)[1]
-    return np.where(lab >= 0, comp[np.maximum(lab, 0)], -1)
-
-
 def _segments(keep: np.ndarray, cut_right: np.ndarray, cut_down: np.ndarray) -> np.ndarray:
     """Connected components of `keep` pixels over uncut 4-neighbour edges -> labels [H, W] (-1 none)."""
     H, W = keep.shape
@@ -259,18 +161,9 @@ class RGBDMaskGenerator(MaskGenerator):
             keep &= ~p
         min_px = max(8, int(cfg.min_area * H * W))
         cands: list[Mask] = [Mask(p, 1.0, 2) for p in planes if p.sum() >= min_px]
-        if cfg.object_merge:
-            parts = _absorb_small(self._level(keep, jumps, angs, cols, cfg.normal_crease_deg[2], cfg.color_edge[2]),
-                                  jumps, max(4, int(cfg.min_part_area * H * W)))
-            nrm = _smooth_normals(pts, valid, _window_px(cfg.normal_window_m, K, depth[valid]))
-            z = np.where(valid, depth, 0.0).astype(np.float64)
         for level, crease, color in zip((2, 1, 0), cfg.normal_crease_deg, cfg.color_edge):
-            if level == 1 and cfg.object_merge:
-                base = _merge_parts(parts, pts, nrm, z, cfg, cfg.merge_concave)
-                alt = _merge_parts(parts, pts, nrm, z, cfg, 0.5 * cfg.merge_concave)   # perturbed: stability
-            else:
-                base = self._level(keep, jumps, angs, cols, crease, color)
-                alt = self._level(keep, jumps, angs, cols, crease, color, scale=0.8)  # perturbed: stability
+            base = self._level(keep, jumps, angs, cols, crease, color)
+            alt = self._level(keep, jumps, angs, cols, crease, color, scale=0.8)  # perturbed: stability
             alt_ids, alt_counts = np.unique(alt[alt >= 0], return_counts=True)
             alt_size = dict(zip(alt_ids.tolist(), alt_counts.tolist()))
             ids, counts = np.unique(base[base >= 0], return_counts=True)
