@@ -22,9 +22,9 @@ supervised with the default models (build_grounder, the map saved), then:
 - relational, attribute (colour) and counting queries of bench_relations' generator (synthetic
   scenes; asked from the first test camera): right-target rate untaught vs taught;
 - persistence: the taught map saved, loaded, 50 more frames (the scene's frames again, new stamps),
-  the refinement a node runs when idle after them (map.final_iters steps over all keyframes), an
-  eviction pass of --evict-share of the Gaussians from a camera that sees nothing; each taught
-  name's explicit visible mIoU after, against before;
+  the refinement a node runs when idle after them (passes over all keyframes until one stops helping,
+  at most map.final_iters steps), an eviction pass of --evict-share of the Gaussians from a camera
+  that sees nothing; each taught name's explicit visible mIoU after, against before;
 - no harm: a fresh copy of the untaught map, every other object taught (by object id), the field
   re-trained the same way; the untaught half's explicit mIoU against the untaught map's;
 - the same clicks through `rg teach MAP NAME --point X Y Z --train-seconds 0` (--cli-scenes, one
@@ -356,7 +356,7 @@ def run_scene(key: str, path: Path, kind: str, args, work: Path) -> dict:
     kf0 = m2.keyframes[-1].index
     for i, f in enumerate(frames[:args.more_frames]):
         m2.add_frame(f.load_rgb(), f.load_depth(), f.intrinsics.K, f.cam_to_world, stamp=1e4 + i)
-    m2.refine(cfg.map.final_iters, converge=False)   # what the node runs when idle after its last keyframe
+    m2.refine(cfg.map.final_iters)   # what the node runs when idle after its last keyframe (refine_iters > 0)
     kf = m2.keyframes[0]
     far = np.eye(4)
     far[:3, 3] = [0.0, 0.0, 50.0]

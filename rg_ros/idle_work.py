@@ -113,9 +113,11 @@ class IdleWork:
         n = self.wcfg.refine_iters
         if n <= 0 or not self.mapper.keyframes or self._refined_iters >= self.cfg.map.final_iters:
             return False
-        with self.lock:
-            self.mapper.refine(n, converge=False)  # fixed slices: the node refines whenever idle
+        with self.lock:   # slices of one converging refinement: it ends when a pass stops helping
+            self.mapper.refine(n, resume=True)
         self._refined_iters += n
+        if self.mapper.last_refine.get("stopped") == "converged":
+            self._refined_iters = self.cfg.map.final_iters    # until the next keyframe
         return True
 
     # ------------------------------------------------------------------------------ perception

@@ -43,7 +43,8 @@ class WorkerConfig:
     train_seconds_max: Annotated[float, Interval(ge=0.0, le=1e6)] = 30.0
     """Field training seconds after each supervision change (0 = whenever idle)."""
     refine_iters: Annotated[int, Interval(ge=0, le=100000)] = 0
-    """Map refinement iterations per idle slice (0 = off), at most map.final_iters per keyframe."""
+    """Map refinement iterations per idle slice (0 = off): slices of one refinement that stops as
+    `rg map`'s does (map.refine_tol), at most map.final_iters per keyframe."""
     idle_wait: Annotated[float, Interval(gt=0.0, le=60.0)] = 0.2
     """Seconds the worker sleeps waiting for a frame when it has nothing else to do."""
     slow_query: Annotated[float, Interval(gt=0.0)] = 0.5

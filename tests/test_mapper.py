@@ -429,6 +429,39 @@ def test_final_refinement_stops_on_convergence(synth_scene):
     assert mapper.last_refine["iters"] == 10
 
 
+def test_refinement_in_slices_is_the_same_refinement_and_ends_when_it_converges(synth_scene):
+    """refine(resume=True) in 7-step slices (the node's idle refinement) takes the same steps as one
+    call and stops at the same pass; past it a slice does nothing until a frame comes. Pruning is off
+    so that one call and many prune alike."""
+    import threading
+    from types import SimpleNamespace
+
+    from rg_ros.idle_work import IdleWork
+
+    cfg = {**SMALL, "refine_tol": 3e-3, "refine_min_passes": 3, "prune_opacity": 0.0, "prune_scale": float("inf")}
+    one, sliced = Mapper(MapConfig(**cfg)), Mapper(MapConfig(**cfg))
+    for m in (one, sliced):
+        for f in synth_scene.train[:4]:
+            m.add_frame(*frame_args(f))
+    n = len(one.keyframes)
+    one.refine(60 * n)
+    assert one.last_refine["stopped"] == "converged" and one.last_refine["iters"] < 60 * n
+    node = SimpleNamespace(wcfg=SimpleNamespace(refine_iters=7), mapper=sliced, lock=threading.Lock(),
+                           cfg=SimpleNamespace(map=SimpleNamespace(final_iters=60 * n)), _refined_iters=0)
+    done = slices = 0
+    while IdleWork._refine(node):
+        done, slices = done + sliced.last_refine["iters"], slices + 1
+    assert sliced.last_refine["stopped"] == "converged" and done == one.last_refine["iters"] and slices > 1
+    assert torch.equal(one.gaussians.means, sliced.gaussians.means)
+    sliced.refine(7, resume=True)
+    assert sliced.last_refine["iters"] == 0                      # converged: nothing to do
+    sliced.refine(7)
+    assert sliced.last_refine["iters"] == 7                      # a fresh refinement on request
+    sliced.add_frame(*frame_args(synth_scene.train[4]))
+    sliced.refine(7, resume=True)
+    assert sliced.last_refine["iters"] == 7                      # the map changed: passes start again
+
+
 def test_split_draws_two_children_from_each_parent():
     """GaussianModel.split: each parent becomes two children at the end, with scales / 1.6 and the
     parent's rotation, opacity and colour; over many splits the children's offsets from the parent

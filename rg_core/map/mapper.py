@@ -43,6 +43,19 @@ class FrameResult:
     seconds: dict = field(default_factory=dict)
 
 
+@dataclass
+class _Passes:
+    """Where the converging refinement is: the map it runs on (frames seen, evicted, keyframes), the
+    current pass's order and position, its summed loss, the last full pass's mean loss."""
+    key: tuple
+    order: list = field(default_factory=list)
+    pos: int = 0
+    loss: float = 0.0
+    prev: float | None = None
+    passes: int = 0
+    converged: bool = False
+
+
 class Mapper:
     def __init__(self, cfg: MapConfig | None = None):
         self.cfg = cfg or MapConfig()
@@ -62,6 +75,7 @@ class Mapper:
         self.supervision = None  # perception.supervision.SupervisionSet, once computed
         self.taught = TaughtSet()  # objects people named (grounding/teach.py); eviction keeps them
         self.built: dict = {}  # how the map was made (map.run.build_map: kind, world scale, photo fit), saved with it
+        self._passes: _Passes | None = None  # the converging refinement's passes, for `refine(resume=True)`
 
     # ------------------------------------------------------------------------------ rendering
 
@@ -231,28 +245,38 @@ class Mapper:
         self.totals["split"] += len(big)
         return len(big)
 
-    def refine(self, iters: int, converge: bool = True) -> float:
+    def refine(self, iters: int, converge: bool = True, resume: bool = False) -> float:
         """Optimise over all keyframes (what a robot does when idle, and `rg map` at the end of a
         run: `final_iters`), drawn uniformly; with `converge` and cfg.refine_tol > 0 in passes that
         visit every keyframe once, in random order, stopping once a pass lowered the mean loss by
-        less than refine_tol against the pass before. Then prune. Returns seconds."""
+        less than refine_tol against the pass before. `resume`: go on with the passes of the last
+        call while no frame came and nothing was evicted (a node refines in short slices; once
+        converged, a slice does nothing). Past convergence the Gaussians only grow: on a 16-keyframe
+        map 1000 more steps took the median axis 31 -> 43 mm and a knife's IoU 61 -> 40. Then prune.
+        Returns seconds."""
         t, c = time.perf_counter(), self.cfg
         if self.keyframes and iters > 0:
-            n, done, passes, prev = len(self.keyframes), 0, 0, None
+            n, done = len(self.keyframes), 0
             if not (converge and c.refine_tol > 0):  # a fixed budget, uniform draws
                 for _ in range(iters):
                     self._step(self.keyframes[int(torch.randint(0, n, (1,), generator=self._rng))])
-                done = iters
-            while done < iters:
-                order = torch.randperm(n, generator=self._rng)[: iters - done].tolist()
-                mean = sum(self._step(self.keyframes[i]) for i in order) / len(order)
-                done, passes = done + len(order), passes + 1
-                full = len(order) == n
-                if full and prev is not None and passes >= c.refine_min_passes and prev - mean < c.refine_tol * prev:
-                    break
-                prev = mean if full else prev
-            self.last_refine = {"iters": done, **({"passes": passes} if passes else {}), "of": iters,
-                                "stopped": "converged" if done < iters else "budget"}
+                self.last_refine = {"iters": iters, "of": iters, "stopped": "budget"}
+            else:
+                key = (self.frames_seen, self.totals["evicted"], tuple(k.index for k in self.keyframes))
+                st = self._passes if resume and self._passes is not None and self._passes.key == key else _Passes(key)
+                self._passes = st
+                while done < iters and not st.converged:
+                    if st.pos == len(st.order):
+                        st.order, st.pos = torch.randperm(n, generator=self._rng).tolist(), 0
+                    st.loss += self._step(self.keyframes[st.order[st.pos]])
+                    st.pos, done = st.pos + 1, done + 1
+                    if st.pos == n:       # a full pass
+                        mean, st.passes, st.loss = st.loss / n, st.passes + 1, 0.0
+                        st.converged = (st.prev is not None and st.passes >= c.refine_min_passes
+                                        and st.prev - mean < c.refine_tol * st.prev)
+                        st.prev = mean
+                self.last_refine = {"iters": done, "passes": st.passes, "of": iters,
+                                    "stopped": "converged" if st.converged else "budget"}
             self.totals["pruned"] += self._prune()
         dt = time.perf_counter() - t
         self.seconds["refine"] = self.seconds.get("refine", 0.0) + dt
