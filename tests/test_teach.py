@@ -528,43 +528,6 @@ def test_two_objects_named_apart_are_split_where_the_masks_joined_them():
     assert teach._separate(g, []) == [] and np.array_equal(teach._separate(g, [(a, blob)])[0], blob)
 
 
-def test_a_long_object_keeps_its_far_end_from_the_object_it_touches():
-    """A knife clicked on its grey blade, its red handle touching a green cup: from the click alone
-    the cup's point is nearer the handle and took it; grown from its clicked part (its own Gaussians
-    of the clicked colour) the knife keeps what only it claimed and half of what both did."""
-    from types import SimpleNamespace
-
-    import torch
-
-    from rg_core.grounding import teach
-    from rg_core.map.gaussians import GaussianModel
-    from rg_core.map.taught import TaughtObject
-
-    x = np.linspace(0.0, 0.20, 201)
-    blade = np.stack([x[:120], np.zeros(120), np.zeros(120)], 1)                  # 0-12 cm, grey
-    handle = np.stack([x[120:], np.zeros(81), np.zeros(81)], 1)                   # 12-20 cm, red
-    a = np.linspace(0, 2 * np.pi, 120, endpoint=False)
-    cup = np.stack([0.235 + 0.035 * np.cos(a), 0.035 * np.sin(a), np.zeros(120)], 1)   # touches the handle's end
-    pts = np.r_[blade, handle, cup]
-    cols = np.r_[np.tile([0.5, 0.5, 0.5], (120, 1)), np.tile([0.8, 0.1, 0.1], (81, 1)), np.tile([0.1, 0.7, 0.1], (120, 1))]
-    gm = GaussianModel()
-    gm.append(torch.from_numpy(pts).float(), torch.full((len(pts),), 0.002), torch.from_numpy(cols).float(), 0.9)
-    g = SimpleNamespace(mapper=SimpleNamespace(gaussians=gm))
-    rec = lambda name, p: TaughtObject(name, np.asarray(p, float), 0.05, np.zeros(3), np.ones(3), np.zeros(4))  # noqa: E731
-    knife, mug = rec("knife", [0.03, 0.0, 0.0]), rec("cup", [0.235, 0.0, 0.0])
-    ids_knife, ids_cup = np.arange(201), np.arange(150, 321)      # the instance field gave the cup half the handle
-    sk, sc = teach._separate(g, [(knife, ids_knife), (mug, ids_cup)])
-    kept = np.isin(np.arange(120, 201), sk).mean()
-    assert np.isin(np.arange(120), sk).all() and np.isin(np.arange(201, 321), sc).all()
-    assert len(np.intersect1d(sk, sc)) == 0 and len(sk) + len(sc) == 321
-    # the contested half of the handle splits where the two parts' paths meet; from the points alone
-    # the cup took nearly all of it
-    from rg_core.grounding.separate import nearest_seed
-
-    alone = nearest_seed(pts, cols, np.stack([knife.point, mug.point]))
-    assert kept >= 0.4 and (alone[120:201] == 0).mean() <= 0.1, (kept, (alone[120:201] == 0).mean())
-
-
 def test_nearest_seed_follows_paths_and_colour_edges():
     """separate.nearest_seed: along a bent strip a point goes to the seed nearer by path, not by straight
     line; a colour edge moves the cut onto it; points the graph does not reach go by straight line."""

@@ -13,16 +13,14 @@ import numpy as np
 NEIGHBOURS = 8        # graph neighbours per Gaussian
 COLOUR_WEIGHT = 10.0  # path stretch per unit of RGB distance (0-sqrt(3)); 30 set a synthetic knife apart
                       # but moved a real pudding box into the wood block beside it (ycbv_0002)
-CLICKED_COLOUR = 0.15  # RGB distance (0-1): the clicked part of a taught object, where its split starts
 
 
 def nearest_seed(points: np.ndarray, colours: np.ndarray, seeds: np.ndarray, k: int = NEIGHBOURS,
-                 colour_weight: float = COLOUR_WEIGHT, starts: list[np.ndarray] | None = None) -> np.ndarray:
+                 colour_weight: float = COLOUR_WEIGHT) -> np.ndarray:
     """points [U, 3] (m), colours [U, 3] (0-1), seeds [S, 3] (m) -> [U] index of each point's seed.
 
-    Each seed starts at the point nearest it, and at its `starts` (indices into points, one array
-    per seed) when given; points the graph does not connect to any seed go by straight-line distance
-    (scaled far above any path, so a connected seed always wins)."""
+    Each seed starts at the point nearest it; points the graph does not connect to any seed go by
+    straight-line distance (scaled far above any path, so a connected seed always wins)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
     from scipy.spatial import cKDTree
@@ -38,24 +36,9 @@ def nearest_seed(points: np.ndarray, colours: np.ndarray, seeds: np.ndarray, k: 
     w = dist * (1.0 + colour_weight * np.linalg.norm(rgb[rows] - rgb[cols], axis=1)) + 1e-9
     graph = coo_matrix((w, (rows, cols)), shape=(len(pts),) * 2).tocsr()
     start = [int(np.argmin(np.linalg.norm(pts - np.asarray(s, np.float64), axis=1))) for s in seeds]
-    sets = [np.union1d([st], starts[i] if starts is not None else []).astype(np.int64) for i, st in enumerate(start)]
-    cost = np.stack([dijkstra(graph, directed=False, indices=ix, min_only=True) for ix in sets])   # [S, U]
+    cost = dijkstra(graph, directed=False, indices=start)                             # [S, U]
     far = ~np.isfinite(cost)
     if far.any():
         straight = np.linalg.norm(pts[None] - pts[start][:, None], axis=-1) * 1e3
         cost = np.where(far, straight, cost)
-    for i, ix in enumerate(sets):      # a seed's own starts are its own, whatever the paths say
-        cost[i, ix] = -1.0
     return np.argmin(cost, 0)
-
-
-def clicked_part(means: np.ndarray, rgb: np.ndarray, point: np.ndarray, mine: list, theirs: list,
-                 union: np.ndarray) -> np.ndarray:
-    """Indices into `union` [U] (means, rgb: [U, 3] of those Gaussians) where a taught object's split
-    starts: its own Gaussians (in `mine`, arrays of ids) that no other object there claims (`theirs`)
-    and whose colour is the clicked Gaussian's (RGB distance <= CLICKED_COLOUR).
-    A long object then keeps its far end: from one point, a knife clicked on its blade lost its handle
-    to the cup the handle touches, the cup's point being nearer."""
-    at = int(np.argmin(np.linalg.norm(means - point, axis=1)))
-    alone = np.isin(union, np.concatenate(mine)) & ~np.isin(union, np.concatenate(theirs or [np.zeros(0, np.int64)]))
-    return np.flatnonzero(alone & (np.linalg.norm(rgb - rgb[at], axis=1) <= CLICKED_COLOUR))

@@ -113,13 +113,13 @@ def _take_lineage(g, t: TaughtObject, ids: np.ndarray) -> None:
 
 def _separate(g, own: list[tuple[TaughtObject, np.ndarray]]) -> list[np.ndarray]:
     """Taught objects whose groups share Gaussians or touch (within ADJACENT), taught apart (points
-    more than SAME_PLACE apart), have the union of their groups split between them
-    (separate.nearest_seed, each grown from its clicked part: separate.clicked_part): a handle the
-    instance field gave the cup beside it goes back to the knife. [ids] in the order of `own`."""
+    more than SAME_PLACE apart), have the union of their groups split between their points
+    (separate.nearest_seed): a handle the instance field gave the cup beside it goes back to the
+    knife. [ids] in the order of `own`."""
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
-    from .separate import clicked_part, nearest_seed
+    from .separate import nearest_seed
 
     out = [ids for _, ids in own]
     if len(own) < 2:
@@ -141,10 +141,7 @@ def _separate(g, own: list[tuple[TaughtObject, np.ndarray]]) -> list[np.ndarray]
         if len(seeds) < 2:
             continue
         union = np.unique(np.concatenate([own[m][1] for m in members]))                # [U]
-        rgb = gs.colors.detach().numpy()[union]
-        owner = seeds[nearest_seed(means[union], rgb, points[seeds], starts=[
-            clicked_part(means[union], rgb, points[s], [own[m][1] for m in members if place[m] == s],
-                         [own[m][1] for m in members if place[m] != s], union) for s in seeds])]
+        owner = seeds[nearest_seed(means[union], gs.colors.detach().numpy()[union], points[seeds])]
         for m in members:
             out[m] = union[owner == place[m]]
     return out
