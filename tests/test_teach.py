@@ -528,6 +528,52 @@ def test_two_objects_named_apart_are_split_where_the_masks_joined_them():
     assert teach._separate(g, []) == [] and np.array_equal(teach._separate(g, [(a, blob)])[0], blob)
 
 
+def test_a_split_between_taught_objects_stays_where_it_was_made_as_the_map_moves():
+    """After a split, each object keeps the Gaussians it won (TaughtObject.held, saved with the map),
+    though the map changed so that paths from the points alone would cut elsewhere; new Gaussians
+    join by paths from what each holds; teaching or forgetting anything makes the split afresh."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from rg_core.grounding import teach
+    from rg_core.map.gaussians import GaussianModel
+    from rg_core.map.taught import TaughtObject, TaughtSet
+
+    rng = np.random.default_rng(1)
+    red = rng.uniform([0.0, 0.0, 0.0], [0.06, 0.05, 0.05], (300, 3))
+    blue = rng.uniform([0.06, 0.0, 0.0], [0.09, 0.05, 0.08], (300, 3))
+    rgb = np.r_[np.tile([0.8, 0.1, 0.1], (300, 1)), np.tile([0.1, 0.2, 0.8], (300, 1))]
+    gm = GaussianModel()
+    gm.append(torch.from_numpy(np.r_[red, blue]).float(), torch.full((600,), 0.003), torch.from_numpy(rgb).float(), 0.9)
+    a = TaughtObject("red box", np.array([0.01, 0.025, 0.05]), 0.05, np.zeros(3), np.ones(3), np.zeros(4))
+    b = TaughtObject("blue can", np.array([0.065, 0.025, 0.05]), 0.05, np.zeros(3), np.ones(3), np.zeros(4))
+    ts = TaughtSet()
+    ts.add(a), ts.add(b)
+    g = SimpleNamespace(mapper=SimpleNamespace(gaussians=gm, taught=ts))
+    blob = np.arange(600)
+    sa, sb = teach._separate(g, [(a, blob), (b, blob)])          # by the colour edge
+    assert np.isin(np.arange(300), sa).mean() >= 0.95 and np.isin(blob[300:], sb).mean() >= 0.95
+    won = sa.copy()
+    assert set(a.held.tolist()) == set(gm.uids.numpy()[sa].tolist())
+    # the colours wash out (as refinement can move them): paths alone would now cut halfway
+    gm.colors = torch.full((600, 3), 0.5)
+    fresh_a = teach._separate(g, [(TaughtObject("x", a.point, 0.05, a.lo, a.hi, a.instance), blob),
+                                  (TaughtObject("y", b.point, 0.05, b.lo, b.hi, b.instance), blob)])[0]
+    assert len(np.setdiff1d(np.arange(300), fresh_a)) >= 60, "the test's premise: from the points alone the cut moves"
+    # saved and loaded, the records still hold their Gaussians, and new ones beside the red box join it
+    ts2 = TaughtSet.from_state_dict(ts.state_dict())
+    a2, b2 = ts2.items
+    gm.append(torch.tensor([[0.03, 0.025, 0.051]]).float(), torch.full((1,), 0.003), torch.full((1, 3), 0.5), 0.9)
+    sa, sb = teach._separate(g, [(a2, np.arange(601)), (b2, np.arange(601))])
+    assert np.array_equal(sa, np.r_[won, 600]) and len(np.intersect1d(sa, sb)) == 0
+    # another object taught: the split is made afresh
+    ts2.add(TaughtObject("mug", np.array([1.0, 0.0, 0.0]), 0.05, np.ones(3), np.ones(3) * 1.1, np.zeros(4)))
+    assert len(a2.held) == len(b2.held) == 0
+    sa, _ = teach._separate(g, [(a2, np.arange(601)), (b2, np.arange(601))])
+    assert len(np.setdiff1d(np.arange(300), sa)) >= 60
+
+
 def test_nearest_seed_follows_paths_and_colour_edges():
     """separate.nearest_seed: along a bent strip a point goes to the seed nearer by path, not by straight
     line; a colour edge moves the cut onto it; points the graph does not reach go by straight line."""

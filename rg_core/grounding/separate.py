@@ -16,11 +16,12 @@ COLOUR_WEIGHT = 10.0  # path stretch per unit of RGB distance (0-sqrt(3)); 30 se
 
 
 def nearest_seed(points: np.ndarray, colours: np.ndarray, seeds: np.ndarray, k: int = NEIGHBOURS,
-                 colour_weight: float = COLOUR_WEIGHT) -> np.ndarray:
+                 colour_weight: float = COLOUR_WEIGHT, fixed: np.ndarray | None = None) -> np.ndarray:
     """points [U, 3] (m), colours [U, 3] (0-1), seeds [S, 3] (m) -> [U] index of each point's seed.
 
-    Each seed starts at the point nearest it; points the graph does not connect to any seed go by
-    straight-line distance (scaled far above any path, so a connected seed always wins)."""
+    Each seed starts at the point nearest it, and at the points `fixed` [U] (seed index, -1: free)
+    gives it: those keep their seed, and the paths of the others start from them too. Points the
+    graph does not connect to any start go by straight-line distance to the nearest start."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
     from scipy.spatial import cKDTree
@@ -35,10 +36,12 @@ def nearest_seed(points: np.ndarray, colours: np.ndarray, seeds: np.ndarray, k: 
     cols, dist = nb[:, 1:].reshape(-1), d[:, 1:].reshape(-1)
     w = dist * (1.0 + colour_weight * np.linalg.norm(rgb[rows] - rgb[cols], axis=1)) + 1e-9
     graph = coo_matrix((w, (rows, cols)), shape=(len(pts),) * 2).tocsr()
-    start = [int(np.argmin(np.linalg.norm(pts - np.asarray(s, np.float64), axis=1))) for s in seeds]
-    cost = dijkstra(graph, directed=False, indices=start)                             # [S, U]
-    far = ~np.isfinite(cost)
+    label = np.full(len(pts), -1, np.int64) if fixed is None else np.asarray(fixed, np.int64).copy()   # [U]
+    for i, s in enumerate(seeds):
+        label[int(np.argmin(np.linalg.norm(pts - np.asarray(s, np.float64), axis=1)))] = i
+    start = np.flatnonzero(label >= 0)
+    _, _, src = dijkstra(graph, directed=False, indices=start, min_only=True, return_predecessors=True)   # [U]
+    far = src < 0
     if far.any():
-        straight = np.linalg.norm(pts[None] - pts[start][:, None], axis=-1) * 1e3
-        cost = np.where(far, straight, cost)
-    return np.argmin(cost, 0)
+        src[far] = start[cKDTree(pts[start]).query(pts[far])[1]]
+    return label[src]

@@ -100,14 +100,13 @@ def _own(g, t: TaughtObject) -> np.ndarray:
 
 def _take_lineage(g, t: TaughtObject, ids: np.ndarray) -> None:
     """t's group is now the Gaussians ids [n]: their lineage ids, made theirs alone first
-    (GaussianModel.isolate; other taught records holding a replaced id take its replacement too)."""
+    (GaussianModel.isolate; taught records holding a replaced id take its replacement too)."""
     gs = g.mapper.gaussians
     changed = gs.isolate(torch.from_numpy(np.asarray(ids, np.int64)))
-    if changed:
-        for x in g.mapper.taught:
-            if x is not t and len(x.uids):
-                add = [changed[u] for u in x.uids.tolist() if u in changed]
-                x.uids = np.union1d(x.uids, np.asarray(add, np.int64)) if add else x.uids
+    for x in g.mapper.taught if changed else ():
+        for f in ("uids", "held"):
+            add = [changed[u] for u in getattr(x, f).tolist() if u in changed]
+            setattr(x, f, np.union1d(getattr(x, f), np.asarray(add, np.int64)) if add else getattr(x, f))
     t.uids, t.gaussians = np.unique(gs.uids.numpy()[ids]), len(ids)
 
 
@@ -115,7 +114,8 @@ def _separate(g, own: list[tuple[TaughtObject, np.ndarray]]) -> list[np.ndarray]
     """Taught objects whose groups share Gaussians or touch (within ADJACENT), taught apart (points
     more than SAME_PLACE apart), have the union of their groups split between their points
     (separate.nearest_seed): a handle the instance field gave the cup beside it goes back to the
-    knife. [ids] in the order of `own`."""
+    knife. A Gaussian one of them held after the last split (TaughtObject.held) stays its own, so
+    the cut does not move with the map. [ids] in the order of `own`."""
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
@@ -141,9 +141,14 @@ def _separate(g, own: list[tuple[TaughtObject, np.ndarray]]) -> list[np.ndarray]
         if len(seeds) < 2:
             continue
         union = np.unique(np.concatenate([own[m][1] for m in members]))                # [U]
-        owner = seeds[nearest_seed(means[union], gs.colors.detach().numpy()[union], points[seeds])]
+        uids = gs.uids.numpy()[union]
+        holds = np.stack([np.isin(uids, np.concatenate([own[m][0].held for m in members if place[m] == s]))
+                          for s in seeds])                                              # [S, U]
+        fixed = np.where(holds.sum(0) == 1, holds.argmax(0), -1)
+        owner = seeds[nearest_seed(means[union], gs.colors.detach().numpy()[union], points[seeds], fixed=fixed)]
         for m in members:
             out[m] = union[owner == place[m]]
+            own[m][0].held = np.unique(uids[owner == place[m]])
     return out
 
 

@@ -4,7 +4,9 @@ A taught object keeps what finds it again after the map changed (new frames, ref
 eviction, a reload): the lineage ids of its Gaussians (GaussianModel.uids: the survivors of
 refinement, pruning and eviction keep theirs, split children and clones their parent's), and for
 when too few of them are left, the point a person showed, the object's physical scale, its box and
-its mean instance feature at that scale.
+its mean instance feature at that scale. Where two taught objects touch, `held` keeps which
+Gaussians the split between them gave each (while the same objects are taught), so the cut stays
+where it was made as the map moves.
 grounding/teach.py finds the object, relabels its masks and answers with it; this module only
 holds the records, checks names and saves them with the map (store.py).
 """
@@ -52,6 +54,7 @@ class TaughtObject:
     gaussians: int = 0           # its Gaussians when last found
     stamp: float = field(default_factory=time.time)
     uids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))   # [G] its Gaussians' lineage ids
+    held: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))   # [H] lineage ids it won from taught neighbours
 
     @property
     def centre(self) -> np.ndarray:
@@ -88,8 +91,14 @@ class TaughtSet:
         self.items = [t for t in self.items if not (t.name.lower() == same
                                                     and np.all(t.point >= lo) and np.all(t.point <= hi))]
         self.items.append(obj)
-        self.version += 1
+        self._changed()
         return obj
+
+    def _changed(self) -> None:
+        """Another set of objects: the splits between touching ones are made afresh."""
+        for t in self.items:
+            t.held = np.zeros(0, np.int64)
+        self.version += 1
 
     def forget(self, name, key=str.lower) -> list[TaughtObject]:
         """Remove every object taught as `name` (the names `key` equates: case aside unless told,
@@ -101,7 +110,7 @@ class TaughtSet:
             taught = ", ".join(repr(n) for n in self.names()) or "nothing yet"
             raise ValueError(f"nothing was taught as {name!r} (taught: {taught})")
         self.items = [t for t in self.items if key(t.name) != want]
-        self.version += 1
+        self._changed()
         return gone
 
     def boxes(self, margin: float = 0.02) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -114,7 +123,8 @@ class TaughtSet:
                              "hi": torch.from_numpy(np.asarray(t.hi, np.float64)),
                              "instance": torch.from_numpy(np.asarray(t.instance, np.float32)), "rule": t.rule,
                              "gaussians": int(t.gaussians), "stamp": float(t.stamp),
-                             "uids": torch.from_numpy(np.asarray(t.uids, np.int64))} for t in self.items],
+                             "uids": torch.from_numpy(np.asarray(t.uids, np.int64)),
+                             "held": torch.from_numpy(np.asarray(t.held, np.int64))} for t in self.items],
                 "version": int(self.version)}
 
     @staticmethod
@@ -124,6 +134,7 @@ class TaughtSet:
             s.items.append(TaughtObject(check_name(o["name"]), o["point"].numpy(), float(o["scale"]), o["lo"].numpy(),
                                         o["hi"].numpy(), o["instance"].numpy(), str(o.get("rule", "")),
                                         int(o.get("gaussians", 0)), float(o.get("stamp", 0.0)),
-                                        o["uids"].numpy().astype(np.int64) if "uids" in o else np.zeros(0, np.int64)))
+                                        o["uids"].numpy().astype(np.int64) if "uids" in o else np.zeros(0, np.int64),
+                                        o["held"].numpy().astype(np.int64) if "held" in o else np.zeros(0, np.int64)))
         s.version = int((d or {}).get("version", len(s.items)))
         return s
