@@ -486,11 +486,9 @@ def test_two_objects_named_apart_are_split_where_the_masks_joined_them():
     """Two taught objects whose own groups are one blob (the 2D masks joined the touching objects in
     every view) are cut along their colour edge, each keeping the Gaussians nearer its own point;
     two names taught at one place (within SAME_PLACE) are one object, not cut."""
-    from types import SimpleNamespace
-
     import torch
 
-    from rg_core.grounding import teach
+    from rg_core.grounding.separate import split_touching
     from rg_core.map.gaussians import GaussianModel
     from rg_core.map.taught import TaughtObject
 
@@ -500,43 +498,40 @@ def test_two_objects_named_apart_are_split_where_the_masks_joined_them():
     gm = GaussianModel()
     gm.append(torch.from_numpy(np.r_[red, blue]).float(), torch.full((600,), 0.003),
               torch.from_numpy(np.r_[np.tile([0.8, 0.1, 0.1], (300, 1)), np.tile([0.1, 0.2, 0.8], (300, 1))]).float(), 0.9)
-    g = SimpleNamespace(mapper=SimpleNamespace(gaussians=gm))
     blob = np.arange(600)
     rec = lambda name, p: TaughtObject(name, np.asarray(p, float), 0.05, np.zeros(3), np.ones(3), np.zeros(4))  # noqa: E731
     a, b = rec("red box", [0.01, 0.025, 0.05]), rec("blue can", [0.08, 0.025, 0.08])   # near each end
-    sa, sb = teach._separate(g, [(a, blob), (b, blob)])
+    sa, sb = split_touching(gm, [(a, blob), (b, blob)])
     assert len(np.intersect1d(sa, sb)) == 0
     assert np.isin(np.arange(300), sa).mean() >= 0.95 and np.isin(np.arange(300, 600), sb).mean() >= 0.95
     # the same colour all over: the cut falls halfway between the points, still two objects
     gm.colors = torch.full((600, 3), 0.5)
-    sa, sb = teach._separate(g, [(a, blob), (b, blob)])
+    sa, sb = split_touching(gm, [(a, blob), (b, blob)])
     assert len(sa) + len(sb) == 600 and min(len(sa), len(sb)) >= 150
     # two names at one place: one object, both keep it whole
     c = rec("my box", [0.015, 0.025, 0.05])
-    sa, sc = teach._separate(g, [(a, blob), (c, blob)])
+    sa, sc = split_touching(gm, [(a, blob), (c, blob)])
     assert len(sa) == len(sc) == 600
     # touching groups, one holding a piece of the other (a knife's handle given to the cup): it goes back
     gm.colors = torch.from_numpy(np.r_[np.tile([0.8, 0.1, 0.1], (300, 1)), np.tile([0.1, 0.2, 0.8], (300, 1))]).float()
     piece = 300 + np.argsort(blue[:, 0])[:60]            # the blue Gaussians nearest the red box
-    sa, sb = teach._separate(g, [(a, np.r_[blob[:300], piece]), (b, np.setdiff1d(blob[300:], piece))])
+    sa, sb = split_touching(gm, [(a, np.r_[blob[:300], piece]), (b, np.setdiff1d(blob[300:], piece))])
     assert np.isin(piece, sb).mean() >= 0.95 and np.isin(blob[:300], sa).mean() >= 0.95, (len(sa), len(sb))
     # groups that neither share nor touch (over ADJACENT apart) are left as they are
     far_a, far_b = np.flatnonzero(red[:, 0] < 0.02), 300 + np.flatnonzero(blue[:, 0] > 0.075)
-    sa, sb = teach._separate(g, [(a, far_a), (b, far_b)])
+    sa, sb = split_touching(gm, [(a, far_a), (b, far_b)])
     assert np.array_equal(sa, far_a) and np.array_equal(sb, far_b)
     # one taught object, or none found (every record gone from the map): nothing to split
-    assert teach._separate(g, []) == [] and np.array_equal(teach._separate(g, [(a, blob)])[0], blob)
+    assert split_touching(gm, []) == [] and np.array_equal(split_touching(gm, [(a, blob)])[0], blob)
 
 
 def test_a_split_between_taught_objects_stays_where_it_was_made_as_the_map_moves():
     """After a split, each object keeps the Gaussians it won (TaughtObject.held, saved with the map),
     though the map changed so that paths from the points alone would cut elsewhere; new Gaussians
     join by paths from what each holds; teaching or forgetting anything makes the split afresh."""
-    from types import SimpleNamespace
-
     import torch
 
-    from rg_core.grounding import teach
+    from rg_core.grounding.separate import split_touching
     from rg_core.map.gaussians import GaussianModel
     from rg_core.map.taught import TaughtObject, TaughtSet
 
@@ -550,27 +545,26 @@ def test_a_split_between_taught_objects_stays_where_it_was_made_as_the_map_moves
     b = TaughtObject("blue can", np.array([0.065, 0.025, 0.05]), 0.05, np.zeros(3), np.ones(3), np.zeros(4))
     ts = TaughtSet()
     ts.add(a), ts.add(b)
-    g = SimpleNamespace(mapper=SimpleNamespace(gaussians=gm, taught=ts))
     blob = np.arange(600)
-    sa, sb = teach._separate(g, [(a, blob), (b, blob)])          # by the colour edge
+    sa, sb = split_touching(gm, [(a, blob), (b, blob)])          # by the colour edge
     assert np.isin(np.arange(300), sa).mean() >= 0.95 and np.isin(blob[300:], sb).mean() >= 0.95
     won = sa.copy()
     assert set(a.held.tolist()) == set(gm.uids.numpy()[sa].tolist())
     # the colours wash out (as refinement can move them): paths alone would now cut halfway
     gm.colors = torch.full((600, 3), 0.5)
-    fresh_a = teach._separate(g, [(TaughtObject("x", a.point, 0.05, a.lo, a.hi, a.instance), blob),
+    fresh_a = split_touching(gm, [(TaughtObject("x", a.point, 0.05, a.lo, a.hi, a.instance), blob),
                                   (TaughtObject("y", b.point, 0.05, b.lo, b.hi, b.instance), blob)])[0]
     assert len(np.setdiff1d(np.arange(300), fresh_a)) >= 60, "the test's premise: from the points alone the cut moves"
     # saved and loaded, the records still hold their Gaussians, and new ones beside the red box join it
     ts2 = TaughtSet.from_state_dict(ts.state_dict())
     a2, b2 = ts2.items
     gm.append(torch.tensor([[0.03, 0.025, 0.051]]).float(), torch.full((1,), 0.003), torch.full((1, 3), 0.5), 0.9)
-    sa, sb = teach._separate(g, [(a2, np.arange(601)), (b2, np.arange(601))])
+    sa, sb = split_touching(gm, [(a2, np.arange(601)), (b2, np.arange(601))])
     assert np.array_equal(sa, np.r_[won, 600]) and len(np.intersect1d(sa, sb)) == 0
     # another object taught: the split is made afresh
     ts2.add(TaughtObject("mug", np.array([1.0, 0.0, 0.0]), 0.05, np.ones(3), np.ones(3) * 1.1, np.zeros(4)))
     assert len(a2.held) == len(b2.held) == 0
-    sa, _ = teach._separate(g, [(a2, np.arange(601)), (b2, np.arange(601))])
+    sa, _ = split_touching(gm, [(a2, np.arange(601)), (b2, np.arange(601))])
     assert len(np.setdiff1d(np.arange(300), sa)) >= 60
 
 
@@ -593,3 +587,46 @@ def test_nearest_seed_follows_paths_and_colour_edges():
     own = nearest_seed(lone, np.r_[grey, [[0.5, 0.5, 0.5]]], seeds, k=4)
     assert own[-1] == 1                                                            # nearer seed 1 in a straight line
     assert nearest_seed(np.zeros((0, 3)), np.zeros((0, 3)), seeds).shape == (0,)
+
+
+def test_a_long_object_is_continued_past_its_end_by_what_lies_along_it(monkeypatch):
+    """locate.continued: a tube whose cap the masks cut off gets the cap found past its end (in its
+    cylinder, along its axis); not the table under that end, not a stick lying across it, and a
+    round group is left as it is. object_at is replaced by the groups a map would return there."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from rg_core.grounding import locate
+    from rg_core.map.gaussians import GaussianModel
+
+    rng = np.random.default_rng(3)
+
+    def tube(x0, x1, n, r=0.007):   # along x, radius r, on the axis y = z = 0
+        a = rng.uniform(0, 2 * np.pi, n)
+        return np.c_[rng.uniform(x0, x1, n), r * np.cos(a), r * np.sin(a)]
+
+    body, cap = tube(0.0, 0.10, 400), tube(0.10, 0.13, 120)
+    table = np.c_[rng.uniform(-0.05, 0.25, 600), rng.uniform(-0.06, 0.06, 600), np.full(600, -0.009)]
+    stick = np.c_[np.full(80, 0.118) + rng.normal(0, 0.001, 80), rng.uniform(-0.011, 0.011, 80), np.full(80, 0.006)]
+    lemon = rng.normal([0.3, 0.2, 0.0], 0.01, (100, 3))
+    pts = np.r_[body, cap, table, stick, lemon]
+    at = np.cumsum([0, len(body), len(cap), len(table), len(stick), len(lemon)])
+    B, C, T, S, L = (np.arange(at[i], at[i + 1]) for i in range(5))
+    gm = GaussianModel()
+    gm.append(torch.from_numpy(pts).float(), torch.full((len(pts),), 0.002), torch.full((len(pts), 3), 0.5), 0.9)
+    g = SimpleNamespace(mapper=SimpleNamespace(gaussians=gm))
+    past_end = {"found": C}
+
+    def fake_object_at(g_, p, scale=None, rule=""):   # past the near end (x < 0) only the table is there
+        assert scale == 0.03 and (p[0] > 0.10 or p[0] < 0.0), "looked past the tube's ends, at its scale"
+        return SimpleNamespace(gaussian_ids=past_end["found"] if p[0] > 0.1 else T), scale, rule, []
+
+    monkeypatch.setattr(locate, "object_at", fake_object_at)
+    assert np.array_equal(locate.continued(g, B, 0.03), np.r_[B, C])            # the cap joins
+    past_end["found"] = np.r_[C[:20], T]                                         # the table under the end
+    assert np.array_equal(locate.continued(g, B, 0.03), B)
+    past_end["found"] = S                                                        # a stick lying across it
+    assert (np.linalg.norm(pts[S, 1:], axis=1) < 0.0115).mean() >= 0.8, "the test's premise: the stick is mostly in the cylinder"
+    assert np.array_equal(locate.continued(g, B, 0.03), B)
+    assert np.array_equal(locate.continued(g, L, 0.03), L)                       # round: nothing looked up

@@ -31,6 +31,8 @@ VOTE_ROUNDS = 3        # votes by the point's views, then twice by the views tha
 TOUCHING = 2.0         # a group-level mask this many times the object level's scale holds several objects
 AGREE_ROUNDS, AGREE_POINTS = 3, 150   # _agreeing: re-choice rounds, points per mask it projects
 NEAR_GROUP = 0.01      # m (+ the group's median Gaussian size): object_views' 'near the group'
+LONG = 2.5             # continued: a group whose largest spread is this many times its second is long
+PAST_MIN, PAST_INSIDE = 10, 0.7   # continued: Gaussians past an end worth a look; share of a join in the cylinder
 
 
 def check_point(point) -> np.ndarray:
@@ -259,3 +261,46 @@ def object_at(g, point, scale: float | None = None, rule: str = "") -> tuple[Gro
     return GroundedObject(ids, means[ids].astype(np.float32), colors, lo, hi, centre, R, ext, 1.0), scale, rule, covering
 
 
+
+
+def continued(g, ids: np.ndarray, scale: float) -> np.ndarray:
+    """A long group [n] continued past its ends, where the masks cut off a tube's cap or a tool's
+    tip (another colour, or hidden in some views). Past each end (within the group's length, in its
+    cylinder: the group's 90th-percentile radius about its axis + 5 mm), the object found at the
+    group's scale (object_at at the point there nearest the axis, 2 cm on) joins with its
+    Gaussians in that cylinder, if they are at least PAST_INSIDE of what it adds (the table under
+    the end is mostly outside) and it is not long across the axis (a tool lying over the end is,
+    however much of it the cylinder holds). -> ids [m] (teaching uses it; point answers do without
+    its two more lookups)."""
+    means = g.mapper.gaussians.means.detach().numpy().astype(np.float64)             # [N, 3]
+    if len(ids) < PAST_MIN:
+        return ids
+    c = means[ids].mean(0)
+    w, V = np.linalg.eigh(np.cov((means[ids] - c).T))                                 # ascending
+    if w[-1] < LONG ** 2 * max(w[-2], 1e-12):
+        return ids
+    a = V[:, -1]
+    s = (means - c) @ a                                                               # [N] along the axis
+    r = np.linalg.norm(means - c - s[:, None] * a, axis=1)                            # [N] from the axis
+    length, radius = np.ptp(s[ids]), np.percentile(r[ids], 90) + 0.005
+    out = ids
+    for e, end in ((1.0, s[ids].max()), (-1.0, s[ids].min())):
+        past = e * (s - end)                                                          # [N] beyond this end
+        cyl = (past > -radius) & (past <= length) & (r <= radius)
+        cand = np.setdiff1d(np.flatnonzero(cyl & (past > 0)), out)
+        if len(cand) < PAST_MIN:
+            continue
+        p = means[cand[np.argmin(np.abs(past[cand] - 0.02) + r[cand])]]
+        new = np.setdiff1d(object_at(g, p, scale=scale)[0].gaussian_ids, out)
+        inside = new[cyl[new]]
+        if len(inside) >= PAST_MIN and len(inside) >= PAST_INSIDE * len(new) and _along(means[new], a):
+            out = np.union1d(out, inside)
+    return out
+
+
+def _along(points: np.ndarray, axis: np.ndarray, max_deg: float = 30.0) -> bool:
+    """points [n, 3] are not long (LONG), or long within max_deg of axis [3] (unit)."""
+    if len(points) < 3:
+        return True
+    w, V = np.linalg.eigh(np.cov((points - points.mean(0)).T))
+    return w[-1] < LONG ** 2 * max(w[-2], 1e-12) or abs(float(V[:, -1] @ axis)) >= np.cos(np.radians(max_deg))

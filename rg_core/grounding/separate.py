@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+SAME_PLACE = 0.03     # m: taught points this near are the same object (two names for it), not split
+ADJACENT = 0.01       # m: taught groups this near touch, and split_touching splits them apart
 NEIGHBOURS = 8        # graph neighbours per Gaussian
 COLOUR_WEIGHT = 10.0  # path stretch per unit of RGB distance (0-sqrt(3)); 30 set a synthetic knife apart
                       # but moved a real pudding box into the wood block beside it (ycbv_0002)
@@ -45,3 +47,44 @@ def nearest_seed(points: np.ndarray, colours: np.ndarray, seeds: np.ndarray, k: 
     if far.any():
         src[far] = start[cKDTree(pts[start]).query(pts[far])[1]]
     return label[src]
+
+
+def split_touching(gs, own: list[tuple[object, np.ndarray]]) -> list[np.ndarray]:
+    """own: (TaughtObject, ids [n] of its own group in the GaussianModel `gs`) per taught object ->
+    [ids] in that order. Objects whose groups share Gaussians or touch (within ADJACENT), taught
+    apart (points more than SAME_PLACE apart), have the union of their groups split between their
+    points (nearest_seed): a handle the instance field gave the cup beside it goes back to the
+    knife. What one of them holds stays its own: the Gaussians it won in the last split
+    (TaughtObject.held; the cut does not move with the map) and those it was continued by past its
+    end (.cont: a tube's cap stays the tube's though another's point is nearer). Sets .held."""
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    out = [ids for _, ids in own]
+    if len(own) < 2:
+        return out
+    means = gs.means.detach().numpy().astype(np.float64)
+    trees = [cKDTree(means[ids]) for _, ids in own]
+    points = np.stack([np.asarray(t.point, np.float64) for t, _ in own])                # [T, 3]
+    same = np.linalg.norm(points[:, None] - points[None], axis=-1) <= SAME_PLACE         # [T, T]
+    place = same.argmax(1)        # one seed per place: two names taught at one point share a group
+    pair = np.zeros_like(same)
+    for i in range(len(own)):
+        for j in range(i + 1, len(own)):
+            pair[i, j] = same[i, j] or trees[i].sparse_distance_matrix(trees[j], ADJACENT).nnz > 0
+    _, comp = connected_components(pair, directed=False)
+    for c in np.unique(comp):
+        members = np.flatnonzero(comp == c)
+        seeds = np.unique(place[members])
+        if len(seeds) < 2:
+            continue
+        union = np.unique(np.concatenate([own[m][1] for m in members]))                # [U]
+        uids = gs.uids.numpy()[union]
+        holds = np.stack([np.isin(uids, np.concatenate([np.r_[own[m][0].held, own[m][0].cont] for m in members
+                                                        if place[m] == s])) for s in seeds])   # [S, U]
+        fixed = np.where(holds.sum(0) == 1, holds.argmax(0), -1)
+        owner = seeds[nearest_seed(means[union], gs.colors.detach().numpy()[union], points[seeds], fixed=fixed)]
+        for m in members:
+            out[m] = union[owner == place[m]]
+            own[m][0].held = np.unique(uids[owner == place[m]])
+    return out

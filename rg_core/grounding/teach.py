@@ -1,14 +1,14 @@
 """Teach and forget: a person names the object at a point, and every query on the map uses it.
 
-`teach` finds the object (point.object_at), keeps what finds it again (map/taught.py) and makes the
-name supervision: in every keyframe that sees the object, the masks that are it (IoU >= RELABEL_IOU
-with its visible mask there; the visible mask itself is added when none is) take the name's text
-embedding as their language target, the PCA basis is refitted when it cannot hold that embedding,
-and the field keeps training on them. Until it has, `answer` serves a query naming a taught object
-(or a close variant: "mug" and "my mug" find "blue mug", "the mugs" all of them) from the taught
-group directly. `refresh` re-applies the labels when keyframes were added or dropped; everything
-here is idempotent: the model's own embeddings of relabelled masks are kept with the supervision,
-and `restore` puts them back.
+`teach` finds the object (locate.object_at, continued past a long object's ends), keeps what finds
+it again (map/taught.py) and makes the name supervision: in every keyframe that sees the object, the
+masks that are it (IoU >= RELABEL_IOU with its visible mask there; the visible mask itself is added
+when none is) take the name's text embedding as their language target, the PCA basis is refitted
+when it cannot hold that embedding, and the field keeps training on them. Until it has, `answer`
+serves a query naming a taught object (or a close variant: "mug" and "my mug" find "blue mug", "the
+mugs" all of them) from the taught group directly. `refresh` re-applies the labels when keyframes
+were added or dropped; all is idempotent: the model's own embeddings of relabelled masks are kept
+with the supervision, and `restore` puts them back.
 """
 from __future__ import annotations
 
@@ -19,9 +19,10 @@ import torch
 
 from ..map.taught import TaughtObject, check_name
 from .masks import result_masks
-from .phrases import core_name, names_match
-from .locate import check_point, object_at
+from .phrases import _singular, core_name, names_match
+from .locate import check_point, continued, object_at
 from .result import GroundedObject, GroundingResult
+from .separate import split_touching
 
 TAUGHT_CONFIDENCE = 0.95   # a person's word: right unless the object moved (bench_teach measures it)
 RELABEL_IOU = 0.5          # a keyframe mask this like the object's visible mask is the object
@@ -29,13 +30,9 @@ ADD_BELOW_IOU = 0.8        # with no mask this like it, the visible mask itself 
 MIN_PIXELS = 30            # fewer visible pixels: the keyframe does not see the object
 PCA_RESIDUAL = 0.25        # a taught embedding the basis reconstructs worse than this refits it
 KEEP_SHARE = 0.5           # of a taught group's Gaussians (when last found) left: still the object by lineage
-SAME_PLACE = 0.03          # m: taught points this near are the same object (two names for it), not split
-ADJACENT = 0.01            # m: taught groups this near touch, and _separate splits them apart
 
 
 def _plural(query: str) -> bool:
-    from .phrases import _singular
-
     last = str(query).lower().strip(" ?.!,").split()[-1:] or [""]
     return _singular(last[0]) != last[0]
 
@@ -44,7 +41,7 @@ def _plural(query: str) -> bool:
 
 def resolve(g, t: TaughtObject) -> GroundedObject:
     """The taught object's group in the map as it is now (cached with the map): its own group
-    (`_own`), less what it shares with other taught objects and lies nearer to theirs (`_separate`):
+    (`_own`), less what it shares with other taught objects and lies nearer to theirs (`split_touching`):
     two objects a person named apart are two, even where the 2D masks joined them in every view.
     Its record follows (box, feature, count, lineage), so eviction keeps protecting it.
     ValueError when it is no longer in the map."""
@@ -68,7 +65,7 @@ def _resolve_all(g, items: list[TaughtObject]) -> dict:
             own.append((t, _own(g, t)))
         except ValueError as exc:
             out[id(t)] = exc
-    for (t, ids), sep in zip(own, _separate(g, own)):
+    for (t, ids), sep in zip(own, split_touching(gs, own)):
         obj = _group(gs, sep if len(sep) else ids)
         feats = g.field.gaussian_instance(t.scale, torch.from_numpy(obj.gaussian_ids))
         t.instance = torch.nn.functional.normalize(feats.mean(0), dim=-1).numpy()
@@ -85,71 +82,39 @@ def _own(g, t: TaughtObject) -> np.ndarray:
     ids = np.flatnonzero(np.isin(gs.uids.numpy(), t.uids)) if len(t.uids) else np.zeros(0, np.int64)
     if not (len(ids) and len(ids) >= KEEP_SHARE * max(t.gaussians, 1)):
         try:
-            ids = object_at(g, t.point, scale=t.scale)[0].gaussian_ids
+            ids, more, _, _ = _found(g, t.point, t.scale)
         except ValueError:   # nothing within reach of the point any more: what is left in its box
             means = gs.means.detach().numpy()
             ids = np.flatnonzero(np.all((means >= t.lo - 0.01) & (means <= t.hi + 0.01), 1))
             if not len(ids):
                 raise ValueError(f"the taught {t.name!r} is no longer in the map (nothing near "
                                  "({:.3f}, {:.3f}, {:.3f}))".format(*t.point)) from None
-        _take_lineage(g, t, ids)
+            more = np.zeros(0, np.int64)
+        _take_lineage(g, t, ids, more)
     means = gs.means.detach().numpy()[ids]
     t.lo, t.hi, t.gaussians = means.min(0), means.max(0), len(ids)
     return np.asarray(ids, np.int64)
 
 
-def _take_lineage(g, t: TaughtObject, ids: np.ndarray) -> None:
-    """t's group is now the Gaussians ids [n]: their lineage ids, made theirs alone first
-    (GaussianModel.isolate; taught records holding a replaced id take its replacement too)."""
+def _found(g, point, scale: float | None) -> tuple[np.ndarray, np.ndarray, float, str]:
+    """The object at `point` (locate.object_at) continued past a long object's ends
+    (locate.continued): (ids [n], those of them continuing it [c], its scale, the rule)."""
+    obj, scale, rule, _ = object_at(g, point, scale=scale)
+    ids = continued(g, obj.gaussian_ids, scale)
+    more = np.setdiff1d(ids, obj.gaussian_ids)
+    return ids, more, scale, rule + (f"; continued past its end by {len(more)} Gaussians" if len(more) else "")
+
+
+def _take_lineage(g, t: TaughtObject, ids: np.ndarray, more: np.ndarray) -> None:
+    """t's group is now the Gaussians ids [n], `more` [c] of them continuing it: their lineage ids,
+    made theirs alone first (GaussianModel.isolate; records holding a replaced id take its replacement)."""
     gs = g.mapper.gaussians
     changed = gs.isolate(torch.from_numpy(np.asarray(ids, np.int64)))
     for x in g.mapper.taught if changed else ():
-        for f in ("uids", "held"):
+        for f in ("uids", "held", "cont"):
             add = [changed[u] for u in getattr(x, f).tolist() if u in changed]
             setattr(x, f, np.union1d(getattr(x, f), np.asarray(add, np.int64)) if add else getattr(x, f))
-    t.uids, t.gaussians = np.unique(gs.uids.numpy()[ids]), len(ids)
-
-
-def _separate(g, own: list[tuple[TaughtObject, np.ndarray]]) -> list[np.ndarray]:
-    """Taught objects whose groups share Gaussians or touch (within ADJACENT), taught apart (points
-    more than SAME_PLACE apart), have the union of their groups split between their points
-    (separate.nearest_seed): a handle the instance field gave the cup beside it goes back to the
-    knife. A Gaussian one of them held after the last split (TaughtObject.held) stays its own, so
-    the cut does not move with the map. [ids] in the order of `own`."""
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
-    from .separate import nearest_seed
-
-    out = [ids for _, ids in own]
-    if len(own) < 2:
-        return out
-    gs = g.mapper.gaussians
-    means = gs.means.detach().numpy().astype(np.float64)
-    trees = [cKDTree(means[ids]) for _, ids in own]
-    points = np.stack([np.asarray(t.point, np.float64) for t, _ in own])                # [T, 3]
-    same = np.linalg.norm(points[:, None] - points[None], axis=-1) <= SAME_PLACE         # [T, T]
-    place = same.argmax(1)        # one seed per place: two names taught at one point share a group
-    pair = np.zeros_like(same)
-    for i in range(len(own)):
-        for j in range(i + 1, len(own)):
-            pair[i, j] = same[i, j] or trees[i].sparse_distance_matrix(trees[j], ADJACENT).nnz > 0
-    _, comp = connected_components(pair, directed=False)
-    for c in np.unique(comp):
-        members = np.flatnonzero(comp == c)
-        seeds = np.unique(place[members])
-        if len(seeds) < 2:
-            continue
-        union = np.unique(np.concatenate([own[m][1] for m in members]))                # [U]
-        uids = gs.uids.numpy()[union]
-        holds = np.stack([np.isin(uids, np.concatenate([own[m][0].held for m in members if place[m] == s]))
-                          for s in seeds])                                              # [S, U]
-        fixed = np.where(holds.sum(0) == 1, holds.argmax(0), -1)
-        owner = seeds[nearest_seed(means[union], gs.colors.detach().numpy()[union], points[seeds], fixed=fixed)]
-        for m in members:
-            out[m] = union[owner == place[m]]
-            own[m][0].held = np.unique(uids[owner == place[m]])
-    return out
+    t.uids, t.gaussians, t.cont = np.unique(gs.uids.numpy()[ids]), len(ids), np.unique(gs.uids.numpy()[more])
 
 
 def _group(gs, ids: np.ndarray) -> GroundedObject:
@@ -256,13 +221,14 @@ def teach(g, name: str, point=None, result: GroundingResult | None = None) -> tu
         c = np.asarray(o.obb_center, np.float64)
         point = means[ids[np.argmin(np.linalg.norm(means[ids] - c, axis=1))]]
     p = check_point(point)
-    obj, scale, rule, _ = object_at(g, p, scale=result.scale if result is not None and result.scale > 0 else None)
+    ids, more, scale, rule = _found(g, p, result.scale if result is not None and result.scale > 0 else None)
     if result is not None:
         rule = f"scale {scale:.3f} m: the scale of the answer it was taught from"
-    feats = g.field.gaussian_instance(scale, torch.from_numpy(obj.gaussian_ids))
-    t = TaughtObject(name, p, float(scale), np.asarray(obj.aabb_min), np.asarray(obj.aabb_max),
-                     torch.nn.functional.normalize(feats.mean(0), dim=-1).numpy(), rule, len(obj.gaussian_ids))
-    _take_lineage(g, t, obj.gaussian_ids)
+    feats = g.field.gaussian_instance(scale, torch.from_numpy(ids))
+    box = g.mapper.gaussians.means.detach().numpy()[ids]
+    t = TaughtObject(name, p, float(scale), box.min(0), box.max(0),
+                     torch.nn.functional.normalize(feats.mean(0), dim=-1).numpy(), rule, len(ids))
+    _take_lineage(g, t, ids, more)
     g.mapper.taught.add(t)
     apply(g)
     return t, answer(g, name)
@@ -375,10 +341,10 @@ def apply(g, only: set[int] | None = None) -> dict:
     if only is None:   # the masks now carry the names: find each object again with them, and keep that lineage
         for t in m.taught:
             try:
-                ids = object_at(g, t.point, scale=t.scale)[0].gaussian_ids
+                ids, more, _, _ = _found(g, t.point, t.scale)
             except ValueError:
                 continue
-            _take_lineage(g, t, ids)
+            _take_lineage(g, t, ids, more)
         g.cache.clear()
     return stats
 

@@ -6,7 +6,7 @@ refinement, pruning and eviction keep theirs, split children and clones their pa
 when too few of them are left, the point a person showed, the object's physical scale, its box and
 its mean instance feature at that scale. Where two taught objects touch, `held` keeps which
 Gaussians the split between them gave each (while the same objects are taught), so the cut stays
-where it was made as the map moves.
+where it was made as the map moves, and `cont` those that continue it past its end.
 grounding/teach.py finds the object, relabels its masks and answers with it; this module only
 holds the records, checks names and saves them with the map (store.py).
 """
@@ -55,6 +55,7 @@ class TaughtObject:
     stamp: float = field(default_factory=time.time)
     uids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))   # [G] its Gaussians' lineage ids
     held: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))   # [H] lineage ids it won from taught neighbours
+    cont: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))   # [C] lineage ids past its end (locate.continued)
 
     @property
     def centre(self) -> np.ndarray:
@@ -124,7 +125,8 @@ class TaughtSet:
                              "instance": torch.from_numpy(np.asarray(t.instance, np.float32)), "rule": t.rule,
                              "gaussians": int(t.gaussians), "stamp": float(t.stamp),
                              "uids": torch.from_numpy(np.asarray(t.uids, np.int64)),
-                             "held": torch.from_numpy(np.asarray(t.held, np.int64))} for t in self.items],
+                             "held": torch.from_numpy(np.asarray(t.held, np.int64)),
+                             "cont": torch.from_numpy(np.asarray(t.cont, np.int64))} for t in self.items],
                 "version": int(self.version)}
 
     @staticmethod
@@ -135,6 +137,7 @@ class TaughtSet:
                                         o["hi"].numpy(), o["instance"].numpy(), str(o.get("rule", "")),
                                         int(o.get("gaussians", 0)), float(o.get("stamp", 0.0)),
                                         o["uids"].numpy().astype(np.int64) if "uids" in o else np.zeros(0, np.int64),
-                                        o["held"].numpy().astype(np.int64) if "held" in o else np.zeros(0, np.int64)))
+                                        *(o[k].numpy().astype(np.int64) if k in o else np.zeros(0, np.int64)
+                                          for k in ("held", "cont"))))
         s.version = int((d or {}).get("version", len(s.items)))
         return s
