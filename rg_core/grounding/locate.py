@@ -33,6 +33,7 @@ AGREE_ROUNDS, AGREE_POINTS = 3, 150   # _agreeing: re-choice rounds, points per 
 NEAR_GROUP = 0.01      # m (+ the group's median Gaussian size): object_views' 'near the group'
 LONG = 2.5             # continued: a group whose largest spread is this many times its second is long
 PAST_MIN, PAST_INSIDE = 10, 0.7   # continued: Gaussians past an end worth a look; share of a join in the cylinder
+LINK_STEPS = 6.0       # continued: the piece found past an end is linked by steps of this many group spacings
 
 
 def check_point(point) -> np.ndarray:
@@ -261,17 +262,16 @@ def object_at(g, point, scale: float | None = None, rule: str = "") -> tuple[Gro
     return GroundedObject(ids, means[ids].astype(np.float32), colors, lo, hi, centre, R, ext, 1.0), scale, rule, covering
 
 
-
-
 def continued(g, ids: np.ndarray, scale: float) -> np.ndarray:
     """A long group [n] continued past its ends, where the masks cut off a tube's cap or a tool's
     tip (another colour, or hidden in some views). Past each end (within the group's length, in its
     cylinder: the group's 90th-percentile radius about its axis + 5 mm), the object found at the
-    group's scale (object_at at the point there nearest the axis, 2 cm on) joins with its
-    Gaussians in that cylinder, if they are at least PAST_INSIDE of what it adds (the table under
-    the end is mostly outside) and it is not long across the axis (a tool lying over the end is,
-    however much of it the cylinder holds). -> ids [m] (teaching uses it; point answers do without
-    its two more lookups)."""
+    group's scale (object_at at the point there nearest the axis, 2 cm on), cut to its piece
+    around that point (steps of LINK_STEPS x the group's median neighbour spacing, at least 2 mm:
+    a shaft held up off the table it was grouped with), joins with its Gaussians in that cylinder,
+    if they are at least PAST_INSIDE of the piece (the table under the end is mostly outside) and
+    the piece is not long across the axis (a tool lying over the end). -> ids [m] (teaching uses
+    it; point answers do without its two more lookups)."""
     means = g.mapper.gaussians.means.detach().numpy().astype(np.float64)             # [N, 3]
     if len(ids) < PAST_MIN:
         return ids
@@ -283,6 +283,7 @@ def continued(g, ids: np.ndarray, scale: float) -> np.ndarray:
     s = (means - c) @ a                                                               # [N] along the axis
     r = np.linalg.norm(means - c - s[:, None] * a, axis=1)                            # [N] from the axis
     length, radius = np.ptp(s[ids]), np.percentile(r[ids], 90) + 0.005
+    link = max(LINK_STEPS * float(np.median(nearest(means[ids], means[ids], 2)[0][:, 1])), 0.002)   # [m]
     out = ids
     for e, end in ((1.0, s[ids].max()), (-1.0, s[ids].min())):
         past = e * (s - end)                                                          # [N] beyond this end
@@ -292,6 +293,8 @@ def continued(g, ids: np.ndarray, scale: float) -> np.ndarray:
             continue
         p = means[cand[np.argmin(np.abs(past[cand] - 0.02) + r[cand])]]
         new = np.setdiff1d(object_at(g, p, scale=scale)[0].gaussian_ids, out)
+        if len(new) > 1:
+            new = new[connected_to(means[new], p, link)]
         inside = new[cyl[new]]
         if len(inside) >= PAST_MIN and len(inside) >= PAST_INSIDE * len(new) and _along(means[new], a):
             out = np.union1d(out, inside)
