@@ -485,7 +485,8 @@ def test_views_that_agree_keep_their_choice():
 def test_two_objects_named_apart_are_split_where_the_masks_joined_them():
     """Two taught objects whose own groups are one blob (the 2D masks joined the touching objects in
     every view) are cut along their colour edge, each keeping the Gaussians nearer its own point;
-    two names taught at one place (within SAME_PLACE) are one object, not cut."""
+    two names taught at one place (within SAME_PLACE) are one object, not cut; what only one group
+    holds stays its own unless the other was continued by it."""
     import torch
 
     from rg_core.grounding.separate import split_touching
@@ -515,8 +516,17 @@ def test_two_objects_named_apart_are_split_where_the_masks_joined_them():
     # touching groups, one holding a piece of the other (a knife's handle given to the cup): it goes back
     gm.colors = torch.from_numpy(np.r_[np.tile([0.8, 0.1, 0.1], (300, 1)), np.tile([0.1, 0.2, 0.8], (300, 1))]).float()
     piece = 300 + np.argsort(blue[:, 0])[:60]            # the blue Gaussians nearest the red box
+    a.held, b.held = np.zeros(0, np.int64), np.zeros(0, np.int64)   # the splits above: another set of objects
     sa, sb = split_touching(gm, [(a, np.r_[blob[:300], piece]), (b, np.setdiff1d(blob[300:], piece))])
     assert np.isin(piece, sb).mean() >= 0.95 and np.isin(blob[:300], sa).mean() >= 0.95, (len(sa), len(sb))
+    # what b was continued by (.cont) is b's wherever the paths would put it, and the paths do not
+    # start from it: the red Gaussians around it stay a's
+    gm.colors = torch.full((600, 3), 0.5)
+    a.held, b.held, b.cont = np.zeros(0, np.int64), np.zeros(0, np.int64), gm.uids.numpy()[:300][red[:, 0] < 0.015]
+    sa, sb = split_touching(gm, [(a, blob), (b, blob)])
+    assert np.isin(np.flatnonzero(red[:, 0] < 0.015), sb).all()
+    assert np.isin(np.flatnonzero((red[:, 0] > 0.02) & (red[:, 0] < 0.035)), sa).mean() >= 0.95
+    a.held, b.held, b.cont = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
     # groups that neither share nor touch (over ADJACENT apart) are left as they are
     far_a, far_b = np.flatnonzero(red[:, 0] < 0.02), 300 + np.flatnonzero(blue[:, 0] > 0.075)
     sa, sb = split_touching(gm, [(a, far_a), (b, far_b)])

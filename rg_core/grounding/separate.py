@@ -55,8 +55,10 @@ def split_touching(gs, own: list[tuple[object, np.ndarray]]) -> list[np.ndarray]
     apart (points more than SAME_PLACE apart), have the union of their groups split between their
     points (nearest_seed): a handle the instance field gave the cup beside it goes back to the
     knife. What one of them holds stays its own: the Gaussians it won in the last split
-    (TaughtObject.held; the cut does not move with the map) and those it was continued by past its
-    end (.cont: a tube's cap stays the tube's though another's point is nearer). Sets .held."""
+    (TaughtObject.held: the paths start from them too, so the cut does not move with the map) and
+    those it was continued by past its end (.cont: a tube's cap stays the tube's though another's
+    point is nearer; not a start of paths, which would carry a knife's handle on into the cup it
+    touches). Sets .held."""
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
@@ -80,10 +82,11 @@ def split_touching(gs, own: list[tuple[object, np.ndarray]]) -> list[np.ndarray]
             continue
         union = np.unique(np.concatenate([own[m][1] for m in members]))                # [U]
         uids = gs.uids.numpy()[union]
-        holds = np.stack([np.isin(uids, np.concatenate([np.r_[own[m][0].held, own[m][0].cont] for m in members
-                                                        if place[m] == s])) for s in seeds])   # [S, U]
-        fixed = np.where(holds.sum(0) == 1, holds.argmax(0), -1)
-        owner = seeds[nearest_seed(means[union], gs.colors.detach().numpy()[union], points[seeds], fixed=fixed)]
+        held, cont = (np.stack([np.isin(uids, np.concatenate([getattr(own[m][0], f) for m in members if place[m] == s]))
+                                for s in seeds]) for f in ("held", "cont"))                  # [S, U] each
+        near = nearest_seed(means[union], gs.colors.detach().numpy()[union], points[seeds],
+                            fixed=np.where(held.sum(0) == 1, held.argmax(0), -1))
+        owner = seeds[np.where(cont.sum(0) == 1, cont.argmax(0), near)]
         for m in members:
             out[m] = union[owner == place[m]]
             own[m][0].held = np.unique(uids[owner == place[m]])
