@@ -57,8 +57,8 @@ def split_touching(gs, own: list[tuple[object, np.ndarray]]) -> list[np.ndarray]
     knife. What one of them holds stays its own: the Gaussians it won in the last split
     (TaughtObject.held: the paths start from them too, so the cut does not move with the map) and
     those it was continued by past its end (.cont: a tube's cap stays the tube's though another's
-    point is nearer; not a start of paths, which would carry a knife's handle on into the cup it
-    touches). Sets .held."""
+    point is nearer). Paths from those reach only Gaussians of the object's own group: the body by
+    a tube's cap, not the cup a knife's handle touches. Sets .held."""
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
@@ -84,8 +84,12 @@ def split_touching(gs, own: list[tuple[object, np.ndarray]]) -> list[np.ndarray]
         uids = gs.uids.numpy()[union]
         held, cont = (np.stack([np.isin(uids, np.concatenate([getattr(own[m][0], f) for m in members if place[m] == s]))
                                 for s in seeds]) for f in ("held", "cont"))                  # [S, U] each
-        near = nearest_seed(means[union], gs.colors.detach().numpy()[union], points[seeds],
-                            fixed=np.where(held.sum(0) == 1, held.argmax(0), -1))
+        mine = np.stack([np.isin(union, np.concatenate([own[m][1] for m in members if place[m] == s]))
+                         for s in seeds])                                                   # [S, U]
+        rgb = gs.colors.detach().numpy()[union]
+        near = [nearest_seed(means[union], rgb, points[seeds], fixed=np.where(h.sum(0) == 1, h.argmax(0), -1))
+                for h in (held, held | cont)]                                               # [U] each
+        near = np.where(mine[near[1], np.arange(len(union))], near[1], near[0])
         owner = seeds[np.where(cont.sum(0) == 1, cont.argmax(0), near)]
         for m in members:
             out[m] = union[owner == place[m]]
