@@ -654,3 +654,25 @@ def test_a_long_object_is_continued_past_its_end_by_what_lies_along_it(monkeypat
     past_end["found"] = np.r_[Sh, T]
     got = locate.continued(g, B, 0.03)
     assert np.isin(Sh, got).mean() >= 0.95 and not np.isin(T, got).any()
+
+
+def test_the_field_trains_on_the_keyframe_supervision_it_is_given(minilm_map_file):
+    """The field's per-keyframe training view follows the supervision object itself, not its id:
+    teaching replaces a keyframe's supervision, and the new object can take the freed one's id (the
+    held-out check then read 20 masks against 22 targets). Built here the way CPython reuses it."""
+    import dataclasses
+
+    import torch
+
+    g = fresh(minilm_map_file)
+    sset = g.mapper.supervision
+    kf = next(k for k in g.mapper.keyframes if len(getattr(sset.by_keyframe.get(k.index), "scales", ())) > 2)
+    g.field._train_view(kf)
+    old = sset.by_keyframe[kf.index]
+    M, cls, was = len(old.scales), type(old), id(old)
+    fields = {f.name: getattr(old, f.name) for f in dataclasses.fields(old)}
+    fields = {k: v[: M - 2] if isinstance(v, (np.ndarray, torch.Tensor)) and len(v) == M else v for k, v in fields.items()}
+    del old
+    sset.by_keyframe[kf.index] = None
+    new = sset.by_keyframe[kf.index] = cls(**fields)
+    assert g.field._train_view(kf)[3].shape[0] == len(new.scales) == M - 2, f"same id as the old one: {id(new) == was}"

@@ -63,7 +63,7 @@ class FeatureField:
         self._pruned = self._pruned_count()
         self.scale_tf: QuantileScale | None = None
         self._pca = None  # (version, mean, components) the language output is expressed in
-        self._masks: dict[int, tuple] = {}  # kf -> (id(sup), masks [M, th tw], scales [M], ray weights [th tw])
+        self._masks: dict[int, tuple] = {}  # kf -> (sup, masks [M, th tw], scales [M], ray weights [th tw])
         self.steps, self.seconds = 0, 0.0
         self.revision = 0  # bumped whenever an existing row's output can change (training, pruning, scale refit);
         #                    appending rows for new Gaussians keeps it, so per-row results of old rows stay valid
@@ -207,8 +207,8 @@ class FeatureField:
         th = max(1, int(round(h * tw / w)))
         K = scale_intrinsics(kf.K, tw / w, th / h)
         hit = self._masks.get(kf.index)
-        if hit is None or hit[0] != id(sup):
-            hit = self._masks[kf.index] = (id(sup), *training_view(sup, kf.index, w, h, tw, th, self.cfg))
+        if hit is None or hit[0] is not sup:   # the object, not its id: a freed one's id comes back
+            hit = self._masks[kf.index] = (sup, *training_view(sup, kf.index, w, h, tw, th, self.cfg))
         return K, tw, th, *hit[1:]
 
     # ---------------------------------------------------------------------------- training
