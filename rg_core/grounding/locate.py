@@ -275,11 +275,10 @@ def continued(g, ids: np.ndarray, scale: float) -> np.ndarray:
     means = g.mapper.gaussians.means.detach().numpy().astype(np.float64)             # [N, 3]
     if len(ids) < PAST_MIN:
         return ids
-    c = means[ids].mean(0)
-    w, V = np.linalg.eigh(np.cov((means[ids] - c).T))                                 # ascending
-    if w[-1] < LONG ** 2 * max(w[-2], 1e-12):
+    a = _long_axis(means[ids])
+    if a is None:
         return ids
-    a = V[:, -1]
+    c = means[ids].mean(0)
     s = (means - c) @ a                                                               # [N] along the axis
     r = np.linalg.norm(means - c - s[:, None] * a, axis=1)                            # [N] from the axis
     length, radius = np.ptp(s[ids]), np.percentile(r[ids], 90) + 0.005
@@ -301,9 +300,15 @@ def continued(g, ids: np.ndarray, scale: float) -> np.ndarray:
     return out
 
 
-def _along(points: np.ndarray, axis: np.ndarray, max_deg: float = 30.0) -> bool:
-    """points [n, 3] are not long (LONG), or long within max_deg of axis [3] (unit)."""
+def _long_axis(points: np.ndarray) -> np.ndarray | None:
+    """The unit axis [3] of points [n, 3] whose largest spread is LONG x their second, else None."""
     if len(points) < 3:
-        return True
-    w, V = np.linalg.eigh(np.cov((points - points.mean(0)).T))
-    return w[-1] < LONG ** 2 * max(w[-2], 1e-12) or abs(float(V[:, -1] @ axis)) >= np.cos(np.radians(max_deg))
+        return None
+    w, V = np.linalg.eigh(np.cov((points - points.mean(0)).T))                        # ascending
+    return V[:, -1] if w[-1] >= LONG ** 2 * max(w[-2], 1e-12) else None
+
+
+def _along(points: np.ndarray, axis: np.ndarray, max_deg: float = 30.0) -> bool:
+    """points [n, 3] are not long (_long_axis), or long within max_deg of axis [3] (unit)."""
+    a = _long_axis(points)
+    return a is None or abs(float(a @ axis)) >= np.cos(np.radians(max_deg))
