@@ -82,10 +82,10 @@ def split_touching(gs, own: list[tuple[object, np.ndarray]]) -> list[np.ndarray]
             continue
         union = np.unique(np.concatenate([own[m][1] for m in members]))                # [U]
         uids = gs.uids.numpy()[union]
-        held, cont = (np.stack([np.isin(uids, np.concatenate([getattr(own[m][0], f) for m in members if place[m] == s]))
-                                for s in seeds]) for f in ("held", "cont"))                  # [S, U] each
-        mine = np.stack([np.isin(union, np.concatenate([own[m][1] for m in members if place[m] == s]))
-                         for s in seeds])                                                   # [S, U]
+        by = [[own[m] for m in members if place[m] == s] for s in seeds]               # (record, ids) per seed
+        held, cont, mine = (np.stack([np.isin(x, np.concatenate([f(o) for o in os])) for os in by])
+                            for x, f in ((uids, lambda o: o[0].held), (uids, lambda o: o[0].cont),
+                                         (union, lambda o: o[1])))                          # [S, U] each
         rgb = gs.colors.detach().numpy()[union]
         near = [nearest_seed(means[union], rgb, points[seeds], fixed=np.where(h.sum(0) == 1, h.argmax(0), -1))
                 for h in (held, held | cont)]                                               # [U] each
