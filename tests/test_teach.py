@@ -657,12 +657,15 @@ def test_a_long_object_is_continued_past_its_end_by_what_lies_along_it(monkeypat
 
 
 def test_the_field_trains_on_the_keyframe_supervision_it_is_given(minilm_map_file):
-    """The field's per-keyframe training view follows the supervision object itself, not its id:
+    """The field's per-keyframe training view follows the supervision record's serial, not its id:
     teaching replaces a keyframe's supervision, and the new object can take the freed one's id (the
     held-out check then read 20 masks against 22 targets). Built here the way CPython reuses it."""
     import dataclasses
 
     import torch
+
+    from rg_core.field import converge
+    from rg_core.grounding.cache import map_scopes
 
     g = fresh(minilm_map_file)
     sset = g.mapper.supervision
@@ -670,9 +673,36 @@ def test_the_field_trains_on_the_keyframe_supervision_it_is_given(minilm_map_fil
     g.field._train_view(kf)
     old = sset.by_keyframe[kf.index]
     M, cls, was = len(old.scales), type(old), id(old)
-    fields = {f.name: getattr(old, f.name) for f in dataclasses.fields(old)}
+    fields = {f.name: getattr(old, f.name) for f in dataclasses.fields(old) if f.init}
     fields = {k: v[: M - 2] if isinstance(v, (np.ndarray, torch.Tensor)) and len(v) == M else v for k, v in fields.items()}
+    scopes = map_scopes(g.mapper, g.field)["supervision"][1]
+    probes = converge._key(g.field, [kf])
     del old
     sset.by_keyframe[kf.index] = None
     new = sset.by_keyframe[kf.index] = cls(**fields)
     assert g.field._train_view(kf)[3].shape[0] == len(new.scales) == M - 2, f"same id as the old one: {id(new) == was}"
+    # the held-out probes and the query caches see the new record too (both keyed by its serial)
+    assert converge._key(g.field, [kf]) != probes
+    assert map_scopes(g.mapper, g.field)["supervision"][1] != scopes
+
+
+def test_supervision_serials_are_new_for_every_record_and_copy():
+    """What caches key a keyframe's supervision by: never shared by two live records, never reused."""
+    import copy
+    import dataclasses
+
+    import torch
+
+    from rg_core.perception.supervision import KeyframeSupervision, SupervisionSet
+
+    def rec():
+        return KeyframeSupervision(np.zeros((1, 2, 2), bool), np.ones(1, np.float32), np.ones(1, np.int8),
+                                   np.ones(1, np.float32), torch.zeros(1, 4))
+
+    a = rec()
+    seen = {a.serial, copy.copy(a).serial, dataclasses.replace(a, dropped=1).serial}
+    for _ in range(50):   # freed records' ids come back; their serials do not
+        seen.add(rec().serial)
+    assert len(seen) == 53
+    s = SupervisionSet()
+    assert copy.copy(s).serial != s.serial != SupervisionSet().serial

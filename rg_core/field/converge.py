@@ -82,7 +82,7 @@ def _probe(field, kf) -> Probe | None:
 
 def _key(field, kfs) -> tuple:
     sset = field.mapper.supervision
-    return (tuple(kf.index for kf in kfs), tuple(id(sset.by_keyframe[kf.index]) for kf in kfs), sset.pca.version)
+    return (tuple(kf.index for kf in kfs), tuple(sset.by_keyframe[kf.index].serial for kf in kfs), sset.pca.version)
 
 
 @torch.no_grad()

@@ -207,8 +207,8 @@ class FeatureField:
         th = max(1, int(round(h * tw / w)))
         K = scale_intrinsics(kf.K, tw / w, th / h)
         hit = self._masks.get(kf.index)
-        if hit is None or hit[0] is not sup:   # the object, not its id: a freed one's id comes back
-            hit = self._masks[kf.index] = (sup, *training_view(sup, kf.index, w, h, tw, th, self.cfg))
+        if hit is None or hit[0] != sup.serial:
+            hit = self._masks[kf.index] = (sup.serial, *training_view(sup, kf.index, w, h, tw, th, self.cfg))
         return K, tw, th, *hit[1:]
 
     # ---------------------------------------------------------------------------- training

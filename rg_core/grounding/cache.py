@@ -94,11 +94,12 @@ def map_scopes(mapper, field) -> dict[str, tuple[tuple, tuple]]:
     g = m.gaussians
     sset = m.supervision
     taught = getattr(m, "taught", None)
-    sup = (len(m.keyframes), m.keyframes[-1].index if m.keyframes else -1, id(sset),
+    sup = (len(m.keyframes), m.keyframes[-1].index if m.keyframes else -1,
+           sset.serial if sset is not None else None,
            taught.version if taught is not None else 0)
     if sset is not None:
         sup += (len(sset.by_keyframe), sum(len(s.embeddings) for s in sset.by_keyframe.values()),
-                tuple(id(s) for s in sset.by_keyframe.values()),
+                tuple(s.serial for s in sset.by_keyframe.values()),
                 getattr(sset.pca, "version", None), id(sset.pca.pca))
     tensors = (g.means, g.log_scales, g.quats, g.opacity_logits)
     rows: tuple = ()

@@ -30,7 +30,7 @@ def _state(obj) -> tuple:
 
 def _sup_key(s) -> tuple:
     p = s.pca
-    return (id(s), tuple((k, id(v), _state(v)) for k, v in s.by_keyframe.items()), id(p.pca), p.version,
+    return (s.serial, tuple((k, v.serial, _state(v)) for k, v in s.by_keyframe.items()), id(p.pca), p.version,
             len(p.raw), tuple(s.text_embeddings), s.taught_state, s.source)
 
 
@@ -55,7 +55,7 @@ def _copy_supervision(sset, prev):
     s = copy.copy(sset)
     s.by_keyframe, s._record_keys = {}, {}
     for k, sup in sset.by_keyframe.items():
-        key = (id(sup), _state(sup))
+        key = (sup.serial, _state(sup))
         s.by_keyframe[k] = old[k] if k in old and keys.get(k) == key else _copy_keyframe_sup(sup)
         s._record_keys[k] = key
     s.text_embeddings = dict(sset.text_embeddings)

@@ -2,6 +2,7 @@
 image-text embeddings, plus the map-wide PCA that compresses embeddings to the field's 64 dims."""
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass, field
 
@@ -12,6 +13,16 @@ from .embed import Embedder, mask_crop
 from .masks import MaskGenerator
 from .pca import IncrementalPCA
 from .scale import MaskScaleError, mask_scale
+
+_SERIALS = itertools.count(1)
+
+
+def _renewed(obj):
+    """copy.copy of `obj` under a serial of its own: caches keyed by serial see a copy as new."""
+    c = object.__new__(type(obj))
+    c.__dict__.update(obj.__dict__)
+    c.serial = next(_SERIALS)
+    return c
 
 
 @dataclass
@@ -33,6 +44,11 @@ class KeyframeSupervision:
     taught: np.ndarray | None = None   # [M] object (str)
     model: torch.Tensor | None = None  # [M, D]
     added: np.ndarray | None = None    # [M] bool
+    # What caches key this record by (field training views, held-out probes, query scopes): unique for
+    # the process, new for every record, copy and dataclasses.replace; id() is reused once freed.
+    serial: int = field(default_factory=lambda: next(_SERIALS), init=False, repr=False, compare=False)
+
+    __copy__ = _renewed
 
     def owned(self) -> np.ndarray:  # [M] bool
         return np.ones(len(self.scales), bool) if self.own is None else self.own
@@ -128,6 +144,9 @@ class SupervisionSet:
         self.text_embeddings: dict[str, torch.Tensor] = {}
         # (taught version, supervised keyframes) the taught labels were last applied for (teach.refresh)
         self.taught_state: tuple | None = None
+        self.serial = next(_SERIALS)   # as KeyframeSupervision.serial
+
+    __copy__ = _renewed
 
     def add(self, keyframe_index: int, sup: KeyframeSupervision) -> bool:
         """Store a keyframe's supervision; returns True when the PCA basis was refitted (callers
