@@ -654,6 +654,15 @@ def test_a_long_object_is_continued_past_its_end_by_what_lies_along_it(monkeypat
     past_end["found"] = np.r_[Sh, T]
     got = locate.continued(g, B, 0.03)
     assert np.isin(Sh, got).mean() >= 0.95 and not np.isin(T, got).any()
+    # a thin tip whose Gaussian nearest the axis 2 cm on is the table's (seed 701's phillips
+    # screwdriver): that one probe finds the table, the others the tip, and the tip joins
+    tip = np.c_[rng.uniform(0.10, 0.15, 150), rng.normal(0, 0.001, (150, 2))]
+    g, pts, (B, Tip, T, X) = model(tube(0.0, 0.10, 400), tip, plane(-0.009, 600), np.array([[0.12, 0.0, 0.0]]))
+    table = np.r_[T, X]
+    monkeypatch.setattr(locate, "object_at", lambda g_, p, scale=None, rule="": (
+        SimpleNamespace(gaussian_ids=table if np.allclose(p, pts[X[0]]) else Tip), scale, rule, []))
+    got = locate.continued(g, B, 0.03)
+    assert np.isin(Tip, got).mean() >= 0.95 and not np.isin(table, got).any()
 
 
 def test_the_field_trains_on_the_keyframe_supervision_it_is_given(minilm_map_file):

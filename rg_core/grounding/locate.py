@@ -34,6 +34,7 @@ NEAR_GROUP = 0.01      # m (+ the group's median Gaussian size): object_views' '
 LONG = 2.5             # continued: a group whose largest spread is this many times its second is long
 PAST_MIN, PAST_INSIDE = 10, 0.7   # continued: Gaussians past an end worth a look; share of a join in the cylinder
 LINK_STEPS = 6.0       # continued: the piece found past an end is linked by steps of this many group spacings
+PROBES = 5             # continued: points past an end looked up; the piece most of them find is the one tested
 
 
 def check_point(point) -> np.ndarray:
@@ -266,12 +267,13 @@ def continued(g, ids: np.ndarray, scale: float) -> np.ndarray:
     """A long group [n] continued past its ends, where the masks cut off a tube's cap or a tool's
     tip (another colour, or hidden in some views). Past each end (within the group's length, in its
     cylinder: the group's 90th-percentile radius about its axis + 5 mm), the object found at the
-    group's scale (object_at at the point there nearest the axis, 2 cm on), cut to its piece
-    around that point (steps of LINK_STEPS x the group's median neighbour spacing, at least 2 mm:
-    a shaft held up off the table it was grouped with), joins with its Gaussians in that cylinder,
-    if they are at least PAST_INSIDE of the piece (the table under the end is mostly outside) and
-    the piece is not long across the axis (a tool lying over the end). -> ids [m] (teaching uses
-    it; point answers do without its two more lookups)."""
+    group's scale at the PROBES points there nearest the axis 2 cm on, each cut to its piece around
+    its point (steps of LINK_STEPS x the group's median neighbour spacing, at least 2 mm: a shaft
+    held up off the table it was grouped with). The piece most probes find (one probe can sit on
+    the table a thin tip lies along) joins with its Gaussians in that cylinder, if they are at
+    least PAST_INSIDE of the piece (the table under the end is mostly outside) and the piece is not
+    long across the axis (a tool lying over the end). -> ids [m] (teaching uses it; point answers
+    do without its lookups)."""
     means = g.mapper.gaussians.means.detach().numpy().astype(np.float64)             # [N, 3]
     if len(ids) < PAST_MIN:
         return ids
@@ -290,14 +292,21 @@ def continued(g, ids: np.ndarray, scale: float) -> np.ndarray:
         cand = np.setdiff1d(np.flatnonzero(cyl & (past > 0)), out)
         if len(cand) < PAST_MIN:
             continue
-        p = means[cand[np.argmin(np.abs(past[cand] - 0.02) + r[cand])]]
-        new = np.setdiff1d(object_at(g, p, scale=scale)[0].gaussian_ids, out)
-        if len(new) > 1:
-            new = new[connected_to(means[new], p, link)]
+        pieces = []
+        for k in cand[np.argsort(np.abs(past[cand] - 0.02) + r[cand], kind="stable")[:PROBES]]:
+            new = np.setdiff1d(object_at(g, means[k], scale=scale)[0].gaussian_ids, out)
+            pieces.append(new[connected_to(means[new], means[k], link)] if len(new) > 1 else new)
+        votes = [sum(_same(p, q) for q in pieces) for p in pieces]
+        new = pieces[int(np.argmax(votes))]                                           # the first of the most found
         inside = new[cyl[new]]
         if len(inside) >= PAST_MIN and len(inside) >= PAST_INSIDE * len(new) and _along(means[new], a):
             out = np.union1d(out, inside)
     return out
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> bool:
+    """Two sets of ids [n], [m] are one piece: they share at least half their union."""
+    return len(np.intersect1d(a, b)) >= 0.5 * max(len(np.union1d(a, b)), 1)
 
 
 def _long_axis(points: np.ndarray) -> np.ndarray | None:
