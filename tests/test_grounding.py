@@ -467,3 +467,24 @@ def test_rg_ground_view_masks_follow_the_keyframes_depth(tmp_path):
     assert depth is None and image is None
     _, raw = g.masks(res, *cam)
     assert (raw & ~obj).sum() > 20
+
+
+def test_instance_groups_are_read_inside_the_interval_training_samples_above_s_star(grounder, synth_scene):
+    """The reference mask groups its object at scales from its own s* up to the view's next mask
+    scale (GARField's interval sampling); at s* itself the features sit on the step between the two
+    sides. The groups are read at that interval's middle."""
+    import numpy as np
+
+    from rg_core.field.sampling import interval_centre
+    from rg_core.grounding import stages
+
+    assert interval_centre([0.065, 0.036, 0.089, 0.065, 0.139], 0.065) == pytest.approx((0.065 + 0.089) / 2, rel=1e-6)
+    assert interval_centre([0.036, 0.139], 0.139) == pytest.approx(0.139 * 1.25, rel=1e-6)   # the largest: up to 1.5 s*
+    assert interval_centre([0.036, 0.139], 0.05) == 0.05                                      # not a scale of the view
+    assert interval_centre([], 0.05) == 0.05
+    ref = stages.reference(grounder, synth_scene.objects[0].name)
+    assert not isinstance(ref, str), ref
+    u = np.unique(grounder.mapper.supervision.by_keyframe[ref.keyframe.index].scales)
+    above = u[u > np.float32(ref.scale)]
+    top = above[0] if len(above) else 1.5 * ref.scale
+    assert ref.scale < ref.group_scale < top and ref.group_scale == pytest.approx((ref.scale + top) / 2, rel=1e-5)

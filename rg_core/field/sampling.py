@@ -46,5 +46,22 @@ def sample_scale(scales: torch.Tensor, rng: torch.Generator) -> float:
     if len(u) == 0:
         return 0.0
     j = int(torch.randint(0, len(u), (1,), generator=rng))
-    hi = u[j + 1] if j + 1 < len(u) else u[j] * 1.5
-    return float(u[j] + float(torch.rand(1, generator=rng)) * (hi - u[j]))
+    return float(u[j] + float(torch.rand(1, generator=rng)) * (_next_scale(u, j) - u[j]))
+
+
+def _next_scale(u: torch.Tensor, j: int) -> torch.Tensor:
+    """The top of the interval sample_scale draws from above u[j] (u [K] sorted unique scales)."""
+    return u[j + 1] if j + 1 < len(u) else u[j] * 1.5
+
+
+def interval_centre(scales, s: float) -> float:
+    """The middle of the interval sample_scale draws from above scale s among a view's mask scales
+    [M] (s itself one of them): where the field learned the groups that masks of scale s make. At s
+    itself the instance features sit on the step between the scales just below, where those masks
+    do not group, and above, where they do: a near-tie the smallest change in training can flip."""
+    u = torch.unique(torch.as_tensor(np.asarray(scales, np.float32))).double()
+    u = u[torch.isfinite(u)]
+    j = int(torch.searchsorted(u, torch.tensor(float(np.float32(s)), dtype=torch.float64)))
+    if j >= len(u) or float(u[j]) != float(np.float32(s)):
+        return float(s)   # not a scale of the view: no interval to centre on
+    return float((u[j] + _next_scale(u, j)) / 2)

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..field.sampling import interval_centre
 from ..geometry.conventions import pixels_to_points
 from ..geometry.points import within
 from .boxes import connected_to, group_boxes, robust_inliers
@@ -43,6 +44,8 @@ class Reference:
     scale: float
     mask: torch.Tensor              # [H, W] bool, the reference mask
     name: str = ""                  # the target's name (masks taught as another name are no candidates)
+    group_scale: float = 0.0        # instance features are read here: the middle of the training interval
+                                    # above s* (field.sampling.interval_centre), where its mask groups
 
 
 @dataclass
@@ -92,8 +95,9 @@ def reference(g, name: str) -> Reference | str:
     sim = -2.0 if best is None else best.similarity
     if best is None or sim < g.gcfg.min_mask_similarity:
         return f"no part of the map looks like {name!r}: best mask similarity {sim:.2f} < {g.gcfg.min_mask_similarity}"
-    mask = torch.from_numpy(g.mapper.supervision.by_keyframe[best.keyframe.index].masks[best.index])
-    return Reference(target, cands, best.keyframe, best.index, best.similarity, best.scale, mask, name)
+    sup = g.mapper.supervision.by_keyframe[best.keyframe.index]
+    return Reference(target, cands, best.keyframe, best.index, best.similarity, best.scale,
+                     torch.from_numpy(sup.masks[best.index]), name, interval_centre(sup.scales, best.scale))
 
 
 def peak(g, ref: Reference, name: str) -> Peak:
@@ -121,7 +125,7 @@ def peak(g, ref: Reference, name: str) -> Peak:
     py, px = py + y0, px + x0
     z = float(fr.depth[py, px] / fr.alpha[py, px].clamp(min=1e-6))          # the surface there
     anchor = pixels_to_points(px, py, z, np.asarray(kf.K, np.float64), np.asarray(kf.cam_to_world, np.float64))
-    return Peak(fr, px, py, value, g.field.instance(fr.latent[py, px], ref.scale), anchor, z > 0)
+    return Peak(fr, px, py, value, g.field.instance(fr.latent[py, px], ref.group_scale), anchor, z > 0)
 
 
 def _renders_sensed(g, fr, kf, box) -> torch.Tensor:
@@ -139,7 +143,7 @@ def candidate_groups(g, ref: Reference, pk: Peak, max_results: int) -> tuple[Gro
     when no group holds it (HDBSCAN left that object as noise), the Gaussians around that feature."""
     region = (g.region(ref.keyframe, ref.mask.numpy(), pk.render.depth, pk.render.alpha, ref.scale)
               if max_results == 1 else None)
-    groups = g.groups(ref.scale, region)
+    groups = g.groups(ref.group_scale, region)
     sim = groups.centres @ pk.instance                                          # [G]
     order = torch.argsort(sim, descending=True).tolist()
     home = groups.containing(pk.instance)
