@@ -635,8 +635,9 @@ def test_a_long_object_is_continued_past_its_end_by_what_lies_along_it(monkeypat
                                     rng.normal([0.3, 0.2, 0.0], 0.01, (100, 3)))
     past_end = {"found": C}
 
-    def fake_object_at(g_, p, scale=None, rule=""):   # past the near end (x < 0) only the table is there
+    def fake_object_at(g_, p, scale=None, rule="", cut_support=True):   # past the near end (x < 0) only the table is there
         assert scale == 0.03 and (p[0] > 0.10 or p[0] < 0.0), "looked past the tube's ends, at its scale"
+        assert not cut_support, "a tip lying on the table is looked for with the table"
         return SimpleNamespace(gaussian_ids=past_end["found"] if p[0] > 0.1 else T), scale, rule, []
 
     monkeypatch.setattr(locate, "object_at", fake_object_at)
@@ -659,7 +660,7 @@ def test_a_long_object_is_continued_past_its_end_by_what_lies_along_it(monkeypat
     tip = np.c_[rng.uniform(0.10, 0.15, 150), rng.normal(0, 0.001, (150, 2))]
     g, pts, (B, Tip, T, X) = model(tube(0.0, 0.10, 400), tip, plane(-0.009, 600), np.array([[0.12, 0.0, 0.0]]))
     table = np.r_[T, X]
-    monkeypatch.setattr(locate, "object_at", lambda g_, p, scale=None, rule="": (
+    monkeypatch.setattr(locate, "object_at", lambda g_, p, scale=None, rule="", cut_support=True: (
         SimpleNamespace(gaussian_ids=table if np.allclose(p, pts[X[0]]) else Tip), scale, rule, []))
     got = locate.continued(g, B, 0.03)
     assert np.isin(Tip, got).mean() >= 0.95 and not np.isin(table, got).any()
@@ -715,3 +716,40 @@ def test_supervision_serials_are_new_for_every_record_and_copy():
     assert len(seen) == 53
     s = SupervisionSet()
     assert copy.copy(s).serial != s.serial != SupervisionSet().serial
+
+
+def test_the_surface_an_object_rests_on_is_cut_from_its_group():
+    """locate.off_support: table Gaussians seen through an object's gaps (a fork's tines), low
+    and table-coloured, leave its group; its own low Gaussians of its own colour stay, and so does
+    everything when the fitted surface is no floor (a wall) or the object is table-coloured above it."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from rg_core.grounding import locate
+    from rg_core.map.gaussians import GaussianModel
+
+    rng = np.random.default_rng(5)
+    tan, black = np.array([0.8, 0.7, 0.57]), np.array([0.05, 0.0, 0.0])
+
+    def model(pts, cols, up=(0.0, 0.0, 1.0)):
+        gm = GaussianModel()
+        gm.append(torch.from_numpy(pts).float(), torch.full((len(pts),), 0.003), torch.from_numpy(cols).float(), 0.9)
+        return SimpleNamespace(mapper=SimpleNamespace(gaussians=gm), up=lambda: np.asarray(up))
+
+    table = np.c_[rng.uniform(-0.1, 0.1, (600, 2)), rng.normal(0, 0.0005, 600)]
+    table = table[(np.abs(table[:, 0]) > 0.04) | (np.abs(table[:, 1]) > 0.02)]       # not under the object
+    body = np.c_[rng.uniform(-0.04, 0.04, 150), rng.uniform(-0.02, 0.02, 150), np.full(150, 0.01)]
+    foot = np.c_[rng.uniform(-0.04, 0.04, 20), rng.uniform(-0.02, 0.02, 20), np.full(20, 0.003)]   # its own, low
+    gap = np.c_[rng.uniform(-0.03, 0.03, 30), rng.uniform(-0.015, 0.015, 30), np.zeros(30)]       # table in its gaps
+    pts = np.concatenate([table, body, foot, gap])
+    cols = np.concatenate([np.tile(tan, (len(table), 1)), np.tile(black, (170, 1)), np.tile(tan, (30, 1))])
+    ids = np.arange(len(table), len(pts))
+    keep = locate.off_support(model(pts, cols), pts, ids)
+    assert keep[:170].all() and not keep[170:].any()
+    # a table-coloured object: only its low, table-coloured Gaussians could go, and its body is above
+    same = cols.copy()
+    same[len(table):len(table) + 150] = tan
+    assert locate.off_support(model(pts, same), pts, ids)[:150].all()
+    # the same points on a wall (up is x): no floor under them, nothing is cut
+    assert locate.off_support(model(pts, cols, up=(1.0, 0.0, 0.0)), pts, ids).all()

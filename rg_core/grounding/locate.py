@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..field.sampling import interval_centre
 from ..geometry.conventions import in_image, project
 from ..geometry.points import nearest, within
 from .boxes import connected_to, group_boxes, robust_inliers
@@ -35,6 +36,8 @@ LONG = 2.5             # continued: a group whose largest spread is this many ti
 PAST_MIN, PAST_INSIDE = 10, 0.7   # continued: Gaussians past an end worth a look; share of a join in the cylinder
 LINK_STEPS = 6.0       # continued: the piece found past an end is linked by steps of this many group spacings
 PROBES = 5             # continued: points past an end looked up; the piece most of them find is the one tested
+RING = 0.03            # m: off_support fits the surface under an object to what lies this near it
+LOW = 0.006            # m: off_support: a Gaussian this near that surface, coloured like it, is the surface's
 
 
 def check_point(point) -> np.ndarray:
@@ -207,11 +210,23 @@ def object_scale(g, covering: list) -> tuple[float, str]:
     return s, f"scale {s:.3f} m: no keyframe sees the point, the median scale of the map's object masks"
 
 
-def object_at(g, point, scale: float | None = None, rule: str = "") -> tuple[GroundedObject, float, str, list]:
+def _group_scale(g, covering: list, scale: float) -> float:
+    """Where the instance features of an object at `scale` are read: the middle of the interval
+    training samples above it (field.sampling.interval_centre, as explicit answers) in the view of
+    the covering mask of that scale; `scale` itself when no covering mask has it."""
+    for kf, _, _, s in covering:
+        if np.float32(s) == np.float32(scale):
+            return interval_centre(g.mapper.supervision.by_keyframe[kf.index].scales, s)
+    return scale
+
+
+def object_at(g, point, scale: float | None = None, rule: str = "",
+              cut_support: bool = True) -> tuple[GroundedObject, float, str, list]:
     """The object at `point` [3] (map frame): (its group, its scale s, the rule that chose s, the
     covering masks: covering_masks).
-    `scale` given (a taught object found again): that scale. ValueError when nothing is mapped
-    within NEAR_RADIUS of the point."""
+    `scale` given (a taught object found again): that scale. `cut_support`: cut the surface it rests
+    on (off_support; teaching cuts it after continued, which looks past an end without it).
+    ValueError when nothing is mapped within NEAR_RADIUS of the point."""
     p = check_point(point)
     gs = g.mapper.gaussians
     means = gs.means.detach().numpy()                                             # [N, 3]
@@ -226,8 +241,9 @@ def object_at(g, point, scale: float | None = None, rule: str = "") -> tuple[Gro
     region = np.zeros(len(means), bool)
     region[within(gs.means.detach(), p, max(REACH * scale, MIN_REACH))] = True
     region[seed] = True
-    groups = g.groups(scale, region)
-    feat = g.field.gaussian_instance(scale, torch.tensor([seed]))[0]
+    at = _group_scale(g, covering, scale)
+    groups = g.groups(at, region)
+    feat = g.field.gaussian_instance(at, torch.tensor([seed]))[0]
     home = groups.containing(feat)
     if home >= 0:
         ids = groups.members(home, grow=c.grow_groups)
@@ -253,6 +269,8 @@ def object_at(g, point, scale: float | None = None, rule: str = "") -> tuple[Gro
         views = object_views(g, means[ids], sizes(ids)) or views
     link = g.link_length()
     if link > 0 and len(ids) > 1:
+        keep = off_support(g, means, ids) if cut_support else np.ones(len(ids), bool)
+        ids, support, against = ids[keep], *(x[keep] if x is not None else None for x in (support, against))
         ids = ids[connected_to(means[ids], p, link, support, against)]
     if c.outlier_mads > 0 and len(ids) > 3:
         ids = ids[robust_inliers(means[ids], c.outlier_mads)]
@@ -261,6 +279,41 @@ def object_at(g, point, scale: float | None = None, rule: str = "") -> tuple[Gro
     lo, hi, centre, R, ext = group_boxes(means[ids])
     colors = (gs.colors.detach()[torch.from_numpy(ids)].clamp(0, 1) * 255).round().byte().numpy()
     return GroundedObject(ids, means[ids].astype(np.float32), colors, lo, hi, centre, R, ext, 1.0), scale, rule, covering
+
+
+def off_support(g, means: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """bool [n] over a group's ids [n]: False for the Gaussians of the surface it rests on, seen
+    through its holes and gaps (a fork's tines, a pair of scissors' handles), which its masks in
+    every view hold. That surface is the plane fitted (robustly) to the Gaussians within RING of
+    the group but not in it, when it faces up (within 20 degrees) and most of the group lies above
+    it; a group Gaussian within LOW of it whose colour is nearer the surface's than the object's
+    (the median of its Gaussians above LOW) is the surface's. Never more than half the group."""
+    keep = np.ones(len(ids), bool)
+    if len(ids) < 10:
+        return keep
+    lo, hi = means[ids].min(0) - RING, means[ids].max(0) + RING
+    box = np.flatnonzero(((means >= lo) & (means <= hi)).all(1))                   # [B] near the group's box
+    ring = np.setdiff1d(box[nearest(means[ids], means[box], 1)[0][:, 0] <= RING], ids)
+    if len(ring) < 10:
+        return keep
+    pts, on = means[ring].astype(np.float64), np.ones(len(ring), bool)
+    for _ in range(4):   # least squares, then again without what lies off the plane
+        c = pts[on].mean(0)
+        n = np.linalg.svd(pts[on] - c)[2][-1]
+        res = np.abs((pts - c) @ n)
+        on = res <= max(3 * 1.4826 * float(np.median(res[on])), 0.002)
+        if on.sum() < 10:
+            return keep
+    up = g.up()
+    n = n if n @ up >= 0 else -n
+    h = (means[ids] - c) @ n                                                          # [n] above the plane
+    if n @ up < np.cos(np.radians(20)) or on.mean() < 0.5 or np.mean(h > LOW) < 0.5:
+        return keep
+    col = g.mapper.gaussians.colors.detach()[torch.from_numpy(ids)].clamp(0, 1).numpy()   # [n, 3]
+    surf = np.median(g.mapper.gaussians.colors.detach()[torch.from_numpy(ring[on])].clamp(0, 1).numpy(), 0)
+    own = np.median(col[h > LOW], 0)
+    drop = (h < LOW) & (np.linalg.norm(col - surf, axis=1) < np.linalg.norm(col - own, axis=1))
+    return keep if drop.sum() > 0.5 * len(ids) else ~drop
 
 
 def continued(g, ids: np.ndarray, scale: float) -> np.ndarray:
@@ -294,7 +347,7 @@ def continued(g, ids: np.ndarray, scale: float) -> np.ndarray:
             continue
         pieces = []
         for k in cand[np.argsort(np.abs(past[cand] - 0.02) + r[cand], kind="stable")[:PROBES]]:
-            new = np.setdiff1d(object_at(g, means[k], scale=scale)[0].gaussian_ids, out)
+            new = np.setdiff1d(object_at(g, means[k], scale=scale, cut_support=False)[0].gaussian_ids, out)
             pieces.append(new[connected_to(means[new], means[k], link)] if len(new) > 1 else new)
         votes = [sum(_same(p, q) for q in pieces) for p in pieces]
         new = pieces[int(np.argmax(votes))]                                           # the first of the most found

@@ -20,7 +20,7 @@ import torch
 from ..map.taught import TaughtObject, check_name
 from .masks import result_masks
 from .phrases import _singular, core_name, names_match
-from .locate import check_point, continued, object_at
+from .locate import check_point, continued, object_at, off_support
 from .result import GroundedObject, GroundingResult
 from .separate import split_touching
 
@@ -98,9 +98,12 @@ def _own(g, t: TaughtObject) -> np.ndarray:
 
 def _found(g, point, scale: float | None) -> tuple[np.ndarray, np.ndarray, float, str]:
     """The object at `point` (locate.object_at) continued past a long object's ends
-    (locate.continued): (ids [n], those of them continuing it [c], its scale, the rule)."""
-    obj, scale, rule, _ = object_at(g, point, scale=scale)
+    (locate.continued), then cut off the surface it rests on (locate.off_support: a cut group's
+    end can link a probe's piece to what the tip lies on): (ids [n], those of them continuing it
+    [c], its scale, the rule)."""
+    obj, scale, rule, _ = object_at(g, point, scale=scale, cut_support=False)
     ids = continued(g, obj.gaussian_ids, scale)
+    ids = ids[off_support(g, g.mapper.gaussians.means.detach().numpy(), ids)]
     more = np.setdiff1d(ids, obj.gaussian_ids)
     return ids, more, scale, rule + (f"; continued past its end by {len(more)} Gaussians" if len(more) else "")
 
