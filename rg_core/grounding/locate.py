@@ -10,7 +10,7 @@ and the object's scale s is the median of those masks' physical scales; with no 
 point, the median scale of the map's object-level masks. The group is the cluster of instance features at s holding the feature of the
 Gaussian nearest the point, voted on by those masks (seen outside them more often than inside:
 carved; inside several: joined), then by the mask of every view that sees the group so far that is
-most the group (object_views), and
+most the group (object_views), cut off the surface it rests on (off_support), and
 cut to its piece in space around the point.
 """
 from __future__ import annotations
