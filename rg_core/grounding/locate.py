@@ -269,8 +269,10 @@ def object_at(g, point, scale: float | None = None, rule: str = "",
         views = object_views(g, means[ids], sizes(ids)) or views
     link = g.link_length()
     if link > 0 and len(ids) > 1:
-        keep = off_support(g, means, ids) if cut_support else np.ones(len(ids), bool)
-        ids, support, against = ids[keep], *(x[keep] if x is not None else None for x in (support, against))
+        if cut_support:
+            keep = off_support(g, means, ids)
+            ids = ids[keep]
+            support, against = (x[keep] if x is not None else None for x in (support, against))
         ids = ids[connected_to(means[ids], p, link, support, against)]
     if c.outlier_mads > 0 and len(ids) > 3:
         ids = ids[robust_inliers(means[ids], c.outlier_mads)]
