@@ -92,6 +92,23 @@ def test_up_direction_from_camera_poses():
         cv.up_direction(np.full((2, 4, 4), np.nan))
 
 
+def test_up_direction_takes_the_table_where_the_poses_leave_the_pitch_open():
+    """Views from one direction (YCB-Video's) leave the pitch open: -y of a camera looking down
+    45 degrees is 45 degrees off up, and the table under it tells the rest."""
+    rng = np.random.default_rng(0)
+    one = np.stack([cv.look_at([1.0, 0.02 * i, 1.0], [0, 0, 0]) for i in range(4)])
+    table = np.c_[rng.uniform(-0.5, 0.5, (3000, 2)), rng.normal(0, 0.002, 3000)]          # [3000, 3] z = 0
+    mug = np.c_[rng.normal(0, 0.03, (500, 2)), rng.uniform(0, 0.1, 500)]
+    assert np.degrees(np.arccos(cv.up_direction(one) @ [0, 0, 1])) > 40
+    up = cv.up_direction(one, np.r_[table, mug])
+    assert np.degrees(np.arccos(up @ [0, 0, 1])) < 1
+    wall = np.c_[rng.normal(0, 0.002, 3000), rng.uniform(-0.5, 0.5, (3000, 2))]          # x = 0: 90 degrees off
+    assert np.allclose(cv.up_direction(one, wall), cv.up_direction(one), atol=1e-9)
+    ring = np.stack([cv.look_at([np.cos(a), np.sin(a), 0.6], [0, 0, 0]) for a in np.linspace(0, 6, 8)])
+    tilted = table @ np.array([[1, 0, 0], [0, np.cos(0.3), -np.sin(0.3)], [0, np.sin(0.3), np.cos(0.3)]]).T
+    assert np.allclose(cv.up_direction(ring, tilted), cv.up_direction(ring), atol=1e-9)   # the poses settle it
+
+
 def test_depth_resolution_is_one_pixel_of_disparity_across_the_widest_baseline():
     """z^2 / (f B): f = 500 px, cameras 0.1 m apart at 1 m: 2 cm; a third camera nearer both does
     not change it, the farthest pair counts; one camera, or all at one place, resolve nothing (the

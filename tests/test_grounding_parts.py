@@ -111,6 +111,36 @@ def _camera_looking_down(x: float) -> np.ndarray:
     return c2w
 
 
+def test_mask_votes_keep_an_objects_inside_that_views_from_around_it_bound():
+    """A lemon's middle Gaussian lies behind its own surface in every view: views 40 degrees apart
+    put it inside every silhouette within the object's width, so it stays; what lies 30 cm under
+    the object, or inside it as seen from one direction only, goes."""
+    from rg_core.geometry.conventions import look_at
+    from rg_core.grounding.carve import MaskView, mask_votes
+
+    K = np.array([[200.0, 0, 32], [0, 200.0, 32], [0, 0, 1]])
+    v_, u_ = np.mgrid[0:64, 0:64]
+    def view(eye):                        # a sphere of radius 4 cm at the origin on a far wall
+        c2w = look_at(eye, [0, 0, 0])
+        d = (np.stack([(u_ - 32) / 200.0, (v_ - 32) / 200.0, np.ones((64, 64))], -1) @ c2w[:3, :3].T)   # [64, 64, 3]
+        o = c2w[:3, 3]
+        b, c = d @ o, o @ o - 0.04 ** 2
+        disc = b ** 2 - (d ** 2).sum(-1) * c
+        t = np.where(disc > 0, (-b - np.sqrt(np.maximum(disc, 0))) / (d ** 2).sum(-1), 0.0)
+        return MaskView(K, c2w, np.where(disc > 0, t, 3.0), disc > 0)
+    around = [view([np.sin(a), 0.0, np.cos(a)]) for a in np.radians([-40, 0, 40])]
+    one = [view([0.01 * i, 0.0, 1.0]) for i in range(3)]
+    pts = np.array([[0.0, 0.0, 0.0],       # its middle
+                    [0.0, 0.0, -0.3],      # far behind it
+                    [0.0, 0.0, 0.04]])     # on its surface, facing the middle view
+    v = mask_votes(pts, around)
+    np.testing.assert_array_equal(v.interior, [True, False, False])
+    np.testing.assert_array_equal(v.carved(2), [False, True, False])
+    w = mask_votes(pts, one)
+    np.testing.assert_array_equal(w.interior, [False, False, False])
+    np.testing.assert_array_equal(w.carved(2), [True, True, False])
+
+
 def test_mask_votes_carve_what_views_see_elsewhere_and_keep_hidden_parts():
     from rg_core.grounding.carve import MaskView, mask_votes
 
@@ -127,16 +157,18 @@ def test_mask_votes_carve_what_views_see_elsewhere_and_keep_hidden_parts():
         views.append(MaskView(K, c2w, depth, m))
     pts = np.array([[0.0, 0.0, 0.0],     # on the target: seen inside by two views, hidden in the third: kept
                     [0.2, 0.0, 0.0],     # on the floor elsewhere: seen outside by all
-                    [0.0, 0.0, -0.3],    # under the target: no view sees it, no evidence it exists
+                    [0.0, 0.0, -0.3],    # 30 cm under a 10 cm target: no view sees it, no evidence it exists
                     [0.2, 0.0, -0.04],   # sunk 4 cm into the floor elsewhere: hidden, outside every silhouette
                     [0.2, 0.0, -0.01],   # 1 cm into the floor: within the 2 cm depth tolerance, seen outside
-                    [5.0, 0.0, 0.0]])    # off every image: no evidence, kept
-    v = mask_votes(pts, views)
-    np.testing.assert_array_equal(v.inside, [2, 0, 0, 0, 0, 0])
-    np.testing.assert_array_equal(v.outside, [0, 3, 0, 0, 3, 0])
-    np.testing.assert_array_equal(v.projected, [3, 0, 3, 0, 0, 0])
-    np.testing.assert_array_equal(v.carved(2), [False, True, True, True, True, False])
-    np.testing.assert_array_equal(v.voted(2), [True, False, False, False, False, False])
+                    [5.0, 0.0, 0.0],     # off every image: no evidence, kept
+                    [0.04, 0.0, -0.04]])  # 4 cm under it, hidden inside every silhouette, but all
+    v = mask_votes(pts, views)              # from one direction: nothing tells it from what lies behind
+    np.testing.assert_array_equal(v.inside, [2, 0, 0, 0, 0, 0, 0])
+    np.testing.assert_array_equal(v.outside, [0, 3, 0, 0, 3, 0, 0])
+    np.testing.assert_array_equal(v.projected, [3, 0, 3, 0, 0, 0, 3])
+    assert not v.interior.any()
+    np.testing.assert_array_equal(v.carved(2), [False, True, True, True, True, False, True])
+    np.testing.assert_array_equal(v.voted(2), [True, False, False, False, False, False, False])
     assert not v.voted(3)[0]
     # A Gaussian as large as its depth gap reaches the surface: seen.
     big = mask_votes(pts[3:4], views, sizes=np.array([0.025]))

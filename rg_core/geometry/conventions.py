@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .points import facing_plane
+
 # Flip between OpenCV camera axes and NeRF/Blender camera axes (its own inverse).
 CV_FROM_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 # Rotation taking a vector in the ROS optical frame to the ROS body frame (x fwd, y left, z up).
@@ -104,13 +106,14 @@ def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarr
     return T
 
 
-def up_direction(cam_to_worlds: np.ndarray) -> np.ndarray:
+def up_direction(cam_to_worlds: np.ndarray, points: np.ndarray | None = None) -> np.ndarray:
     """World "up" [3] (unit) from camera poses [N, 4, 4] (OpenCV axes), for maps without gravity.
 
     Cameras held by people and robots rarely roll, so their x axes lie in the horizontal plane: up
     is the direction most orthogonal to all of them (the smallest eigenvector of sum x x^T), signed
     like the cameras' mean up (-y). When the x axes span one direction only (one viewing direction),
-    the mean -y with its x component removed."""
+    the poses leave the cameras' pitch open: the normal of the largest plane of `points` [M, 3]
+    (the floor or table) within 45 degrees of the mean -y with its x component removed, else that."""
     T = np.asarray(cam_to_worlds, np.float64).reshape(-1, 4, 4)
     if not len(T) or not np.isfinite(T).all():
         raise ValueError(f"up_direction needs finite camera poses [N, 4, 4], got {np.shape(cam_to_worlds)}")
@@ -124,7 +127,11 @@ def up_direction(cam_to_worlds: np.ndarray) -> np.ndarray:
     if n < 1e-9:
         raise ValueError("up_direction: camera poses give no up direction")
     up = up / n
-    return up if up @ up0 >= 0 else -up
+    up = up if up @ up0 >= 0 else -up
+    if w[1] <= 0.05 * w[2] and points is not None and len(points) >= 3:
+        plane = facing_plane(points, up)
+        up = up if plane is None else plane
+    return up
 
 
 def pixels_to_points(u, v, z, K: np.ndarray, c2w: np.ndarray | None = None) -> np.ndarray:

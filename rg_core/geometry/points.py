@@ -85,3 +85,31 @@ def similarity_transform(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.nd
         raise ValueError("similarity_transform: the source points all coincide")
     s = float(np.trace(np.diag(S) @ D) / var)
     return s, R, md - s * R @ ms
+
+
+def facing_plane(points: np.ndarray, direction: np.ndarray, max_angle: float = 45.0, min_share: float = 0.2,
+                 distance: float = 0.01, tries: int = 3, seed: int = 0) -> np.ndarray | None:
+    """Unit normal [3] (signed like `direction` [3]) of the largest plane among points [N, 3] that
+    faces within `max_angle` degrees of `direction` and holds at least `min_share` of them (RANSAC,
+    open3d, `distance` m; the `tries` largest planes are looked at in turn), or None."""
+    import open3d as o3d
+
+    P = np.asarray(points, np.float64)
+    P = P[np.isfinite(P).all(1)]
+    P = P[:: max(1, len(P) // 20000)]
+    d = np.asarray(direction, np.float64) / np.linalg.norm(direction)
+    left = np.ones(len(P), bool)
+    o3d.utility.random.seed(seed)
+    for _ in range(tries):
+        if left.sum() < max(3, min_share * len(P)):
+            return None
+        idx = np.flatnonzero(left)
+        model, inl = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P[idx])).segment_plane(distance, 3, 500)
+        if len(inl) < min_share * len(P):
+            return None
+        n = np.asarray(model[:3], np.float64) / np.linalg.norm(model[:3])
+        n = n if n @ d >= 0 else -n
+        if n @ d >= np.cos(np.radians(max_angle)):
+            return n
+        left[idx[np.asarray(inl)]] = False
+    return None

@@ -5,8 +5,8 @@ Each table has a scope, the state it is made from:
 - "map": the Gaussians (identity and in-place version of their tensors, their count), the field
   and the supervision: renders, clusters over the whole map, spacing, background, scene graph;
 - "supervision": the keyframes and their masks, embeddings and PCA basis, and what was taught
-  (map/taught.py): vocabulary, up
-  direction, registration border; a map that grows or is refined keeps them;
+  (map/taught.py): vocabulary, up direction (its plane too, which refining barely turns),
+  registration border; a map that grows or is refined keeps them;
 - "field": the field's rows (its revision: training, pruning, a scale or PCA refit): clusters of
   one region, keyed by the Gaussians in it, which the map growing elsewhere leaves valid.
 The mapper's optimiser replaces its tensors on every step and pruning or adding Gaussians makes new

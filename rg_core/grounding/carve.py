@@ -36,15 +36,17 @@ class MaskVotes:
     outside: np.ndarray    # [N] views that see it outside
     projected: np.ndarray  # [N] views where it projects into the mask (seen or hidden)
     on_image: np.ndarray   # [N] views where it projects onto the image
+    interior: np.ndarray   # [N] bool: in the object (mask_votes)
 
     def carved(self, min_views: int = 2, silhouette: float = 0.5) -> np.ndarray:
         """bool [N]: not the target. Among points in front of at least `min_views` views: seen
         outside the mask more often than inside; or seen by none of them (no evidence: the mapper
-        seeds only what some view saw, so that is a Gaussian sunk under a surface or drifted);
-        or inside fewer than `silhouette` of the masks' silhouettes (what a wider surface hides
-        around the object). Points off every image keep their cluster's word."""
+        seeds only what some view saw, so that is a Gaussian sunk under a surface or drifted),
+        unless every view puts it in the object's interior (a lemon's middle, behind its own
+        surface); or inside fewer than `silhouette` of the masks' silhouettes (what a wider
+        surface hides around the object). Points off every image keep their cluster's word."""
         enough = self.on_image >= min_views
-        unseen = (self.inside + self.outside) == 0
+        unseen = ((self.inside + self.outside) == 0) & ~self.interior
         return (self.outside > self.inside) | ((unseen | (self.projected < silhouette * self.on_image)) & enough)
 
     def voted(self, min_votes: int = 2) -> np.ndarray:
@@ -109,6 +111,7 @@ def registration_border(offsets: np.ndarray, max_px: int = 3, min_pixels: int = 
 
 SIZE_TOL = 2.0        # a Gaussian reaches the sensed surface within this many of its largest std devs
 DEPTH_TOL_ABS = 0.02  # m: a point this near the sensed depth is that surface (mask_votes' default)
+INTERIOR_SPREAD = 30.0  # degrees: views this far apart bound what lies inside an object
 
 
 def dilated(mask: np.ndarray, border_px: int) -> np.ndarray:
@@ -146,8 +149,11 @@ def sight(points: np.ndarray, K: np.ndarray, cam_to_world: np.ndarray, depths, t
 def mask_votes(points: np.ndarray, views: list[MaskView], sizes: np.ndarray | None = None, border_px: int = 0,
                depth_tol_abs: float = DEPTH_TOL_ABS, depth_tol_rel: float = 0.02, size_tol: float = SIZE_TOL) -> MaskVotes:
     """points [N, 3] world, sizes [N] (largest std dev, m) -> how many views see each point inside
-    and outside their mask of the target (masks dilated by `border_px`), and in how many views it
-    projects into the mask or anywhere on the image, seen or hidden.
+    and outside their mask of the target (masks dilated by `border_px`), in how many views it
+    projects into the mask or anywhere on the image, seen or hidden, and whether it lies in the
+    object: every view it projects into hides it inside the mask, no deeper behind the surface
+    than the mask is wide (its equal-area disc), and their directions to it spread at least
+    INTERIOR_SPREAD degrees (one direction cannot tell the object's inside from what it hides).
     A view sees a point when the sensor depth there is within max(abs, rel * depth, size_tol * size)
     of the point's (`sight`): a Gaussian that large reaches the surface (one sunk into the table is the table)."""
     pts = np.asarray(points, np.float64)
@@ -156,12 +162,13 @@ def mask_votes(points: np.ndarray, views: list[MaskView], sizes: np.ndarray | No
     tol_size = np.zeros(len(pts)) if sizes is None else size_tol * np.asarray(sizes, np.float64).reshape(-1)
     if tol_size.shape != (len(pts),):
         raise ValueError(f"mask_votes: sizes must be [N] = [{len(pts)}], got {list(np.shape(sizes))}")
-    inside, outside, projected, on_image = (np.zeros(len(pts), np.int32) for _ in range(4))
+    inside, outside, projected, on_image, hidden = (np.zeros(len(pts), np.int32) for _ in range(5))
+    rays = np.zeros((len(pts), 3))                                                        # [N, 3] summed
     for v in views:
         if v.depth.shape != v.mask.shape:
             raise ValueError(f"mask_votes: depth {v.depth.shape} and mask {v.mask.shape} differ")
     if not views:
-        return MaskVotes(inside, outside, projected, on_image)
+        return MaskVotes(inside, outside, projected, on_image, np.zeros(len(pts), bool))
     ons, seens, rs, us = sight(pts, np.stack([v.K for v in views]), np.stack([v.cam_to_world for v in views]),
                                [v.depth for v in views], tol_size, depth_tol_abs, depth_tol_rel)
     for v, on, seen, r, u in zip(views, ons, seens, rs, us):
@@ -172,4 +179,14 @@ def mask_votes(points: np.ndarray, views: list[MaskView], sizes: np.ndarray | No
         outside += seen & ~hit
         projected += hit
         on_image += on
-    return MaskVotes(inside, outside, projected, on_image)
+        hid = np.flatnonzero(hit & ~seen)
+        if len(hid):
+            d = v.depth[r[hid], u[hid]]                                                  # [H] the surface there
+            width = 2.0 * np.sqrt(m.sum() / np.pi) * d / v.K[0, 0]                      # [H] m, the mask's
+            ray = pts[hid] - v.cam_to_world[:3, 3]                                        # [H, 3]
+            behind = ray @ v.cam_to_world[:3, 2] - d
+            ok = (d > 0) & (behind > 0) & (behind <= width)
+            hidden[hid[ok]] += 1
+            rays[hid[ok]] += ray[ok] / np.linalg.norm(ray[ok], axis=1, keepdims=True)
+    spread = np.linalg.norm(rays, axis=1) <= np.cos(np.radians(INTERIOR_SPREAD / 2)) * np.maximum(hidden, 1)
+    return MaskVotes(inside, outside, projected, on_image, (hidden == on_image) & (hidden >= 2) & spread)

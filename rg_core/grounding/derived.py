@@ -200,7 +200,10 @@ def scene_graph(g) -> list:
 
 
 def up(g) -> np.ndarray:
-    """The map's up direction [3] from its keyframes' poses (geometry.conventions.up_direction)."""
+    """The map's up direction [3] from its keyframes' poses, and its largest plane where they leave
+    the pitch open (geometry.conventions.up_direction). Kept while the keyframes are (the floor or
+    table a growing map refines barely turns)."""
     g._check_cache()
     return g.cache.get("up", tuple(k.index for k in g.mapper.keyframes),
-                       lambda: up_direction(np.stack([k.cam_to_world for k in g.mapper.keyframes])))
+                       lambda: up_direction(np.stack([k.cam_to_world for k in g.mapper.keyframes]),
+                                            g.mapper.gaussians.means.detach().numpy()))

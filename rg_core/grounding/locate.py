@@ -257,12 +257,15 @@ def object_at(g, point, scale: float | None = None, rule: str = "",
     views = [v for v in (keyframe_view(kf, g.mapper.supervision.by_keyframe[kf.index].masks[m])
                          for kf, m, _, _ in covering) if v is not None]
     support = against = None
+    grouped, inner = ids, np.zeros(0, np.int64)   # the field's group; what views from around put inside it
     for _ in range(VOTE_ROUNDS):   # the point's views first, then every view that sees the group so far
         if not views:
             break
         v = mask_votes(means[cand], views, sizes(cand), border_px=g.vote_border(), depth_tol_abs=g.vote_depth_tol())
         need = min(c.min_mask_votes, len(views))
         ids = np.union1d(np.setdiff1d(ids, cand[v.carved(need)]), cand[v.voted(need)]).astype(np.int64)
+        inner = np.union1d(inner, np.intersect1d(grouped, cand[v.interior]))
+        ids = np.union1d(ids, np.setdiff1d(inner, cand[v.outside > v.inside]))   # one view cannot place it
         inside = np.isin(cand, ids)
         support, against = (v.inside > v.outside)[inside], (v.outside > v.inside)[inside]
         ids = cand[inside]
