@@ -602,6 +602,30 @@ def test_nearest_seed_follows_paths_and_colour_edges():
     assert nearest_seed(np.zeros((0, 3)), np.zeros((0, 3)), seeds).shape == (0,)
 
 
+def test_nearest_seed_cuts_where_an_edge_stands_out_from_the_steps_around_it():
+    """A box on a plain block, its top printed in stripes (large colour steps of its own), its
+    front plain dark red above the block's plain tan front. Clicked on its top and on the block's
+    front: the box's front is nearer the block's click by path, and the edge into it is the one
+    that stands out from the steps around it, so contrast gives it to the box; colour alone does not."""
+    from rg_core.grounding.separate import nearest_seed
+
+    h = 0.005
+    a, b = np.meshgrid(np.arange(0, 0.1 + 1e-9, h), np.arange(0, 0.08 + 1e-9, h), indexing="ij")
+    front = np.c_[a.ravel(), np.zeros(a.size), b.ravel()]                         # y = 0, z 0-0.08
+    a, c = np.meshgrid(np.arange(0, 0.1 + 1e-9, h), np.arange(h, 0.1 + 1e-9, h), indexing="ij")
+    top = np.c_[a.ravel(), c.ravel(), np.full(a.size, 0.08)]                      # the box's top
+    pts = np.r_[front, top]
+    box = pts[:, 2] > 0.05 + 1e-9
+    col = np.where(box[:, None], [0.45, 0.0, 0.01], [0.54, 0.34, 0.15])          # dark red over tan
+    stripe = (np.round(pts[:, 0] / h).astype(int) % 2 == 0) & (pts[:, 2] > 0.08 - 1e-9)
+    col[stripe] = [1.0, 0.9, 0.9]                                                 # white stripes on a
+    col[(pts[:, 2] > 0.08 - 1e-9) & ~stripe] = [0.9, 0.05, 0.1]                   # red top
+    seeds = np.array([[0.05, 0.05, 0.08], [0.05, 0.0, 0.025]])
+    own = nearest_seed(pts, col, seeds)
+    assert (own[box] == 0).all() and (own[~box] == 1).all()
+    assert (nearest_seed(pts, col, seeds, contrast_weight=0.0)[box & (pts[:, 1] == 0)] == 1).mean() > 0.5
+
+
 def test_a_long_object_is_continued_past_its_end_by_what_lies_along_it(monkeypatch):
     """locate.continued: a tube whose cap the masks cut off gets the cap found past its end (in its
     cylinder, along its axis), and a screwdriver the shaft held up off the table it was grouped

@@ -3,8 +3,11 @@
 Where the 2D masks joined two objects in every view (a knife's handle against a cup), the instance
 field joins them too, and only the person's points tell them apart. Each Gaussian goes to the seed
 with the shortest path over the Gaussians' k-nearest-neighbour graph, each step's length stretched
-by the colour difference across it (x (1 + colour_weight x RGB distance)), so the cut between
-touching objects follows their colour edge rather than the midpoint between the seeds.
+by the colour difference across it (x (1 + colour_weight x RGB distance + contrast_weight x that
+distance over the typical step around its ends)), so the cut between touching objects follows
+their colour edge rather than the midpoint between the seeds. The second term is the edge's
+contrast: a printed box's own steps are as large as those around them, a box's edge against a
+plain wooden block stands out (ycbv_0002).
 """
 from __future__ import annotations
 
@@ -15,10 +18,13 @@ ADJACENT = 0.01       # m: taught groups this near touch, and split_touching spl
 NEIGHBOURS = 8        # graph neighbours per Gaussian
 COLOUR_WEIGHT = 10.0  # path stretch per unit of RGB distance (0-sqrt(3)); 30 set a synthetic knife apart
                       # but moved a real pudding box into the wood block beside it (ycbv_0002)
+CONTRAST_WEIGHT = 2.0  # path stretch per unit of contrast: RGB distance / the ends' median neighbour step
+CONTRAST_FLOOR = 0.02  # the least typical step (RGB distance): a clean render's flat colour has none
 
 
 def nearest_seed(points: np.ndarray, colours: np.ndarray, seeds: np.ndarray, k: int = NEIGHBOURS,
-                 colour_weight: float = COLOUR_WEIGHT, fixed: np.ndarray | None = None) -> np.ndarray:
+                 colour_weight: float = COLOUR_WEIGHT, fixed: np.ndarray | None = None,
+                 contrast_weight: float = CONTRAST_WEIGHT) -> np.ndarray:
     """points [U, 3] (m), colours [U, 3] (0-1), seeds [S, 3] (m) -> [U] index of each point's seed.
 
     Each seed starts at the point nearest it, and at the points `fixed` [U] (seed index, -1: free)
@@ -36,7 +42,10 @@ def nearest_seed(points: np.ndarray, colours: np.ndarray, seeds: np.ndarray, k: 
     d, nb = cKDTree(pts).query(pts, k=k)                                              # [U, k]
     rows = np.repeat(np.arange(len(pts)), k - 1)
     cols, dist = nb[:, 1:].reshape(-1), d[:, 1:].reshape(-1)
-    w = dist * (1.0 + colour_weight * np.linalg.norm(rgb[rows] - rgb[cols], axis=1)) + 1e-9
+    step = np.linalg.norm(rgb[rows] - rgb[cols], axis=1)                               # [U (k-1)]
+    typical = np.median(step.reshape(len(pts), k - 1), axis=1) if k > 1 else np.zeros(len(pts))   # [U]
+    contrast = step / np.maximum(0.5 * (typical[rows] + typical[cols]), CONTRAST_FLOOR)
+    w = dist * (1.0 + colour_weight * step + contrast_weight * contrast) + 1e-9
     graph = coo_matrix((w, (rows, cols)), shape=(len(pts),) * 2).tocsr()
     label = np.full(len(pts), -1, np.int64) if fixed is None else np.asarray(fixed, np.int64).copy()   # [U]
     for i, s in enumerate(seeds):
