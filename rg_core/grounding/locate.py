@@ -10,8 +10,9 @@ and the object's scale s is the median of those masks' physical scales; with no 
 point, the median scale of the map's object-level masks. The group is the cluster of instance features at s holding the feature of the
 Gaussian nearest the point, voted on by those masks (seen outside them more often than inside:
 carved; inside several: joined), then by the mask of every view that sees the group so far that is
-most the group (object_views), cut off the surface it rests on (off_support), and
-cut to its piece in space around the point.
+most the group (object_views), cut off the surface it rests on (off_support),
+cut to its piece in space around the point, and split at the concave seams between objects that
+touch (parts.py), keeping the part at the point.
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from ..geometry.conventions import in_image, project
 from ..geometry.points import nearest, within
 from .boxes import connected_to, group_boxes, robust_inliers
 from .carve import mask_votes
+from .parts import MIN_PART, part_at, seen_normals
 from .result import GroundedObject
 from .stages import keyframe_view, mask_points
 
@@ -279,6 +281,11 @@ def object_at(g, point, scale: float | None = None, rule: str = "",
         ids = ids[connected_to(means[ids], p, link, support, against)]
     if c.outlier_mads > 0 and len(ids) > 3:
         ids = ids[robust_inliers(means[ids], c.outlier_mads)]
+    if len(ids) >= 2 * MIN_PART:   # objects the masks joined: the one across no concave seam from the point
+        keep = part_at(means[ids], seen_normals(g.mapper.keyframes, means[ids], sizes(ids)), p)
+        if not keep.all():
+            rule += f"; split at a concave seam from what it touches ({int(keep.sum())} of {len(ids)} Gaussians kept)"
+            ids = ids[keep]
     if not len(ids):
         ids = np.array([seed], np.int64)
     lo, hi, centre, R, ext = group_boxes(means[ids])

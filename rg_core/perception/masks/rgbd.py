@@ -21,6 +21,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from ...geometry.normals import organised_normals
 from ..base import Mask
 from . import MaskGenerator
 
@@ -39,19 +40,6 @@ class RGBDMaskConfig:
     max_masks: int = 40
     dedupe_iou: float = 0.9
     min_stability: float = 0.5
-
-
-def _normals(pts: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Per-pixel unit normals [H, W, 3] from central differences of the organised point cloud."""
-    dx = np.zeros_like(pts)
-    dy = np.zeros_like(pts)
-    dx[:, 1:-1] = pts[:, 2:] - pts[:, :-2]
-    dy[1:-1] = pts[2:] - pts[:-2]
-    n = np.cross(dx, dy)
-    norm = np.linalg.norm(n, axis=-1, keepdims=True)
-    n = np.where(norm > 1e-12, n / np.maximum(norm, 1e-12), 0.0)
-    n[~valid] = 0.0
-    return n
 
 
 def _planes(pts: np.ndarray, valid: np.ndarray, cfg: RGBDMaskConfig, rng_seed: int = 0) -> list[np.ndarray]:
@@ -132,7 +120,7 @@ class RGBDMaskGenerator(MaskGenerator):
         u, v = np.meshgrid(np.arange(W), np.arange(H))
         z = np.where(valid, depth, 0.0).astype(np.float64)
         pts = np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], -1)
-        nrm = _normals(pts, valid)
+        nrm = organised_normals(pts, valid)
         lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB).astype(np.float64)
         lab = cv2.GaussianBlur(lab, (3, 3), 0)
         jump_r = np.abs(z[:, 1:] - z[:, :-1])
