@@ -76,6 +76,19 @@ def test_point_answer_is_the_object_with_names_and_confidence(minilm_map_file, s
         assert js["names"][0][0] == name and len(js["objects"]) == 1
 
 
+def test_objects_apart_are_not_split_at_seams(minilm_map_file, clicks):
+    """The concave-seam split (parts.part_at) leaves an object that touches nothing whole: on the
+    session's map every click's group is the same with and without it."""
+    from rg_core.grounding.locate import object_at
+
+    g = fresh(minilm_map_file)
+    for name, c in clicks.items():
+        with_seams, _, rule, _ = object_at(g, c.point)
+        without = object_at(g, c.point, seams=False)[0]
+        assert np.array_equal(with_seams.gaussian_ids, without.gaussian_ids), (name, rule)
+        assert "concave seam" not in rule
+
+
 def test_a_keyframe_pixel_is_a_point(minilm_map_file):
     from rg_core.grounding.point import point_at_pixel
 
@@ -408,6 +421,13 @@ def test_teaching_a_click_answer_names_the_group_that_was_shown(minilm_map_file,
     t, res = teach.teach(g, "my peach", result=shown)
     assert np.array_equal(res.objects[0].gaussian_ids, shown.objects[0].gaussian_ids)
     assert np.allclose(t.point, clicks["peach"].point)
+    # found again (new frames, reload) as it was shown: split at seams; a taught point is not
+    from rg_core.map.taught import TaughtSet
+
+    t2, _ = teach.teach(g, "my cup", point=clicks["orange cup"].point)
+    assert t.seams and not t2.seams
+    back = TaughtSet.from_state_dict(g.mapper.taught.state_dict())
+    assert [x.seams for x in back] == [x.seams for x in g.mapper.taught]
 
 
 def _plane_views(offsets, W=64):

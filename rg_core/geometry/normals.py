@@ -2,8 +2,6 @@
 creases (perception.masks.rgbd) and the concave seams that split a point answer (grounding.parts)."""
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 
 from .conventions import pixels_to_points
@@ -50,11 +48,10 @@ def depth_normals(depth: np.ndarray, K: np.ndarray, step: int = 1, median_px: in
     def at(rr, cc):   # median-filtered depth [n] at pixels rr, cc [n]; NaN where it has none
         R, C = rr[:, None] + wr, cc[:, None] + wc                                    # [n, w]
         inside = ((R >= 0) & (R < H) & (C >= 0) & (C < W)).all(1)
-        win = d[np.clip(R, 0, H - 1), np.clip(C, 0, W - 1)]
-        with np.errstate(all="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)   # a window with no reading: NaN
-            z = np.nanmedian(win, axis=1) if r else win[:, 0]
-        return np.where(inside, z, np.nan)
+        win = np.sort(d[np.clip(R, 0, H - 1), np.clip(C, 0, W - 1)], axis=1)         # NaN last
+        k = np.isfinite(win).sum(1)                                                    # [n] readings
+        lo, hi = (np.take_along_axis(win, np.maximum(x, 0)[:, None], 1)[:, 0] for x in ((k - 1) // 2, k // 2))
+        return np.where(inside & (k > 0), 0.5 * (lo + hi), np.nan)
 
     K = np.asarray(K, np.float64)
     pt = [pixels_to_points(cc, rr, at(rr, cc), K) for rr, cc in

@@ -222,12 +222,14 @@ def _group_scale(g, covering: list, scale: float) -> float:
     return scale
 
 
-def object_at(g, point, scale: float | None = None, rule: str = "",
-              cut_support: bool = True) -> tuple[GroundedObject, float, str, list]:
+def object_at(g, point, scale: float | None = None, rule: str = "", cut_support: bool = True,
+              seams: bool = True) -> tuple[GroundedObject, float, str, list]:
     """The object at `point` [3] (map frame): (its group, its scale s, the rule that chose s, the
     covering masks: covering_masks).
     `scale` given (a taught object found again): that scale. `cut_support`: cut the surface it rests
     on (off_support; teaching cuts it after continued, which looks past an end without it).
+    `seams`: split it at concave seams from what it touches (parts.part_at; teaching does without:
+    separate.split_touching parts taught objects that touch by their points and colours).
     ValueError when nothing is mapped within NEAR_RADIUS of the point."""
     p = check_point(point)
     gs = g.mapper.gaussians
@@ -281,7 +283,7 @@ def object_at(g, point, scale: float | None = None, rule: str = "",
         ids = ids[connected_to(means[ids], p, link, support, against)]
     if c.outlier_mads > 0 and len(ids) > 3:
         ids = ids[robust_inliers(means[ids], c.outlier_mads)]
-    if len(ids) >= 2 * MIN_PART:   # objects the masks joined: the one across no concave seam from the point
+    if seams and len(ids) >= 2 * MIN_PART:   # objects the masks joined: the one across no concave seam from the point
         keep = part_at(means[ids], seen_normals(g.mapper.keyframes, means[ids], sizes(ids)), p)
         if not keep.all():
             rule += f"; split at a concave seam from what it touches ({int(keep.sum())} of {len(ids)} Gaussians kept)"
@@ -359,7 +361,7 @@ def continued(g, ids: np.ndarray, scale: float) -> np.ndarray:
             continue
         pieces = []
         for k in cand[np.argsort(np.abs(past[cand] - 0.02) + r[cand], kind="stable")[:PROBES]]:
-            new = np.setdiff1d(object_at(g, means[k], scale=scale, cut_support=False)[0].gaussian_ids, out)
+            new = np.setdiff1d(object_at(g, means[k], scale=scale, cut_support=False, seams=False)[0].gaussian_ids, out)
             pieces.append(new[connected_to(means[new], means[k], link)] if len(new) > 1 else new)
         votes = [sum(_same(p, q) for q in pieces) for p in pieces]
         new = pieces[int(np.argmax(votes))]                                           # the first of the most found

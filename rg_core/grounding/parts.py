@@ -72,18 +72,34 @@ def seam_graph(points: np.ndarray, normals: np.ndarray, k: int | None = None, si
     return W.maximum(W.T)
 
 
+def _fiedler(W, r: np.ndarray) -> np.ndarray:
+    """The eigenvector [m] of the second smallest eigenvalue of the normalized Laplacian
+    I - R W R (R = diag(r)): shift-invert Lanczos on the sparse matrix (4x faster than dense at
+    900 Gaussians, from a fixed start: the same answer every run), dense when small or unconverged."""
+    from scipy.linalg import eigh
+    from scipy.sparse import diags, identity
+    from scipy.sparse.linalg import ArpackError, eigsh
+
+    m = len(r)
+    L = identity(m) - diags(r) @ W @ diags(r)
+    if m > 200:
+        try:
+            w, V = eigsh(L.tocsc(), k=2, sigma=-1e-3, which="LM", v0=np.linspace(1.0, 2.0, m), tol=1e-10)
+            return V[:, int(np.argsort(w)[1])]
+        except (ArpackError, RuntimeError):
+            pass
+    return eigh(L.toarray(), subset_by_index=[0, 1], driver="evx")[1][:, 1]
+
+
 def _bisect(W, min_part: int, max_seam: float) -> tuple[np.ndarray, float] | None:
     """Sparse symmetric weights W [m, m] -> (side [m] bool, its normalized cut) of the cheapest
     sweep cut along the Fiedler vector that leaves min_part each side and whose edges weigh
     max_seam on average at most (a seam), or None."""
-    from scipy.linalg import eigh
-
     d = np.asarray(W.sum(1)).reshape(-1)                                                # [m]
     if (d <= 0).any():
         return None
     r = 1.0 / np.sqrt(d)
-    L = np.eye(len(d)) - r[:, None] * W.toarray() * r[None]                              # normalized Laplacian
-    y = eigh(L, subset_by_index=[0, 1], driver="evx")[1][:, 1] * r                       # [m] Fiedler
+    y = _fiedler(W, r) * r                                                               # [m]
     e = W.tocoo()
     up = e.row < e.col                                                                   # each edge once
     i, j, w = e.row[up], e.col[up], e.data[up]                                           # [E]

@@ -56,6 +56,7 @@ class TaughtObject:
     uids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))   # [G] its Gaussians' lineage ids
     held: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))   # [H] lineage ids it won from taught neighbours
     cont: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))   # [C] lineage ids past its end (locate.continued)
+    seams: bool = False          # found split at concave seams (taught from a point answer that showed it so)
 
     @property
     def centre(self) -> np.ndarray:
@@ -126,7 +127,8 @@ class TaughtSet:
                              "gaussians": int(t.gaussians), "stamp": float(t.stamp),
                              "uids": torch.from_numpy(np.asarray(t.uids, np.int64)),
                              "held": torch.from_numpy(np.asarray(t.held, np.int64)),
-                             "cont": torch.from_numpy(np.asarray(t.cont, np.int64))} for t in self.items],
+                             "cont": torch.from_numpy(np.asarray(t.cont, np.int64)), "seams": bool(t.seams)}
+                            for t in self.items],
                 "version": int(self.version)}
 
     @staticmethod
@@ -138,6 +140,6 @@ class TaughtSet:
                                         int(o.get("gaussians", 0)), float(o.get("stamp", 0.0)),
                                         o["uids"].numpy().astype(np.int64) if "uids" in o else np.zeros(0, np.int64),
                                         *(o[k].numpy().astype(np.int64) if k in o else np.zeros(0, np.int64)
-                                          for k in ("held", "cont"))))
+                                          for k in ("held", "cont")), bool(o.get("seams", False))))
         s.version = int((d or {}).get("version", len(s.items)))
         return s
