@@ -54,6 +54,15 @@ def test_two_touching_boxes_split_at_their_concave_seam(jitter):
         assert np.mean(truth[keep] == i) >= 0.97 and keep[truth == i].mean() >= 0.95
 
 
+@pytest.mark.parametrize("scale", [1e-3, 1e3])
+def test_the_split_does_not_depend_on_the_units(scale):
+    """Millimetre crumbs or a warehouse's boxes, float32 or float64: the same parts."""
+    pts, nrm, truth = two_boxes(4.0)
+    want = concave_parts(pts, nrm)
+    got = concave_parts((pts * scale).astype(np.float32), nrm.astype(np.float32))
+    assert max(np.mean(got == want), np.mean(got != want)) >= 0.99
+
+
 def sphere(r, n, rng):
     v = rng.normal(size=(n, 3))
     v /= np.linalg.norm(v, axis=1, keepdims=True)
