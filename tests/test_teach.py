@@ -679,9 +679,10 @@ def test_a_long_object_is_continued_past_its_end_by_what_lies_along_it(monkeypat
                                     rng.normal([0.3, 0.2, 0.0], 0.01, (100, 3)))
     past_end = {"found": C}
 
-    def fake_object_at(g_, p, scale=None, rule="", cut_support=True):   # past the near end (x < 0) only the table is there
+    def fake_object_at(g_, p, scale=None, rule="", cut_support=True, seams=True):   # past the near end (x < 0): the table
         assert scale == 0.03 and (p[0] > 0.10 or p[0] < 0.0), "looked past the tube's ends, at its scale"
         assert not cut_support, "a tip lying on the table is looked for with the table"
+        assert not seams, "teaching's probes look as teaching does, without the seam split"
         return SimpleNamespace(gaussian_ids=past_end["found"] if p[0] > 0.1 else T), scale, rule, []
 
     monkeypatch.setattr(locate, "object_at", fake_object_at)
@@ -704,7 +705,7 @@ def test_a_long_object_is_continued_past_its_end_by_what_lies_along_it(monkeypat
     tip = np.c_[rng.uniform(0.10, 0.15, 150), rng.normal(0, 0.001, (150, 2))]
     g, pts, (B, Tip, T, X) = model(tube(0.0, 0.10, 400), tip, plane(-0.009, 600), np.array([[0.12, 0.0, 0.0]]))
     table = np.r_[T, X]
-    monkeypatch.setattr(locate, "object_at", lambda g_, p, scale=None, rule="", cut_support=True: (
+    monkeypatch.setattr(locate, "object_at", lambda g_, p, scale=None, rule="", cut_support=True, seams=True: (
         SimpleNamespace(gaussian_ids=table if np.allclose(p, pts[X[0]]) else Tip), scale, rule, []))
     got = locate.continued(g, B, 0.03)
     assert np.isin(Tip, got).mean() >= 0.95 and not np.isin(table, got).any()
