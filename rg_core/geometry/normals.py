@@ -7,14 +7,13 @@ import numpy as np
 from .conventions import pixels_to_points
 
 
-def organised_normals(pts: np.ndarray, valid: np.ndarray, step: int = 1) -> np.ndarray:
+def organised_normals(pts: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """Unit normals [H, W, 3] of an organised cloud pts [H, W, 3] (valid [H, W] bool): the cross
-    product of its central differences over +-step pixels (x right by y down: away from the camera
-    for a surface facing it); 0 where the pixel is not valid or the differences are degenerate."""
-    s = max(1, int(step))
+    product of its central differences (x right by y down: away from the camera for a surface
+    facing it); 0 where the pixel is not valid or the differences are degenerate."""
     dx, dy = np.zeros_like(pts), np.zeros_like(pts)
-    dx[:, s:-s] = pts[:, 2 * s:] - pts[:, :-2 * s]
-    dy[s:-s] = pts[2 * s:] - pts[:-2 * s]
+    dx[:, 1:-1] = pts[:, 2:] - pts[:, :-2]
+    dy[1:-1] = pts[2:] - pts[:-2]
     n = np.cross(dx, dy)
     norm = np.linalg.norm(n, axis=-1, keepdims=True)
     n = np.where(norm > 1e-12, n / np.maximum(norm, 1e-12), 0.0)
