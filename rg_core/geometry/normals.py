@@ -29,13 +29,17 @@ def depth_normals(depth: np.ndarray, K: np.ndarray, step: int = 1, median_px: in
     each the median of the known depths in its median_px x median_px window (0: the reading;
     a sensor's speckle turns normals more than its noise moves points). 0 where the pixel has no
     reading, or one of those four has no depth or a window leaving the image."""
-    d = np.asarray(depth, np.float64)
+    d = np.asarray(depth)
     if d.ndim != 2:
         raise ValueError(f"depth_normals: depth must be [H, W], got {list(d.shape)}")
     if median_px < 0 or (median_px and median_px % 2 == 0):
         raise ValueError(f"depth_normals: median_px must be 0 or odd, got {median_px}")
     H, W = d.shape
-    d = np.where(np.isfinite(d) & (d > 0), d, np.nan)
+
+    def read(R, C):   # depth [...] at pixels R, C (clipped onto the image), NaN where unknown
+        z = d[np.clip(R, 0, H - 1), np.clip(C, 0, W - 1)].astype(np.float64)
+        return np.where(np.isfinite(z) & (z > 0), z, np.nan)
+
     if pixels is None:
         rows, cols = (a.reshape(-1) for a in np.meshgrid(np.arange(H), np.arange(W), indexing="ij"))
     else:
@@ -47,7 +51,7 @@ def depth_normals(depth: np.ndarray, K: np.ndarray, step: int = 1, median_px: in
     def at(rr, cc):   # median-filtered depth [n] at pixels rr, cc [n]; NaN where it has none
         R, C = rr[:, None] + wr, cc[:, None] + wc                                    # [n, w]
         inside = ((R >= 0) & (R < H) & (C >= 0) & (C < W)).all(1)
-        win = np.sort(d[np.clip(R, 0, H - 1), np.clip(C, 0, W - 1)], axis=1)         # NaN last
+        win = np.sort(read(R, C), axis=1)                                             # NaN last
         k = np.isfinite(win).sum(1)                                                    # [n] readings
         lo, hi = (np.take_along_axis(win, np.maximum(x, 0)[:, None], 1)[:, 0] for x in ((k - 1) // 2, k // 2))
         return np.where(inside & (k > 0), 0.5 * (lo + hi), np.nan)
@@ -55,8 +59,7 @@ def depth_normals(depth: np.ndarray, K: np.ndarray, step: int = 1, median_px: in
     K = np.asarray(K, np.float64)
     pt = [pixels_to_points(cc, rr, at(rr, cc), K) for rr, cc in
           ((rows, cols + s), (rows, cols - s), (rows + s, cols), (rows - s, cols))]   # 4 x [n, 3]
-    centre = pixels_to_points(cols, rows, np.where(np.isfinite(d[np.clip(rows, 0, H - 1), np.clip(cols, 0, W - 1)]),
-                                                   1.0, np.nan), K)                 # [n, 3] its ray (z = 1)
+    centre = pixels_to_points(cols, rows, np.where(np.isfinite(read(rows, cols)), 1.0, np.nan), K)   # [n, 3] z = 1
     with np.errstate(all="ignore"):
         n = np.cross(pt[0] - pt[1], pt[2] - pt[3])                                     # x right by y down
         norm = np.linalg.norm(n, axis=1, keepdims=True)
