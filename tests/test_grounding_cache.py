@@ -137,3 +137,31 @@ def test_growth_elsewhere_keeps_vocabulary_and_the_clusters_asked(own_map, synth
     same(cached.ground(names[0], mode="explicit"), plain.ground(names[0], mode="explicit"))
     assert not any(cached.cache.tables["clusters"].get(k) is v for k, v in clusters.items())
     assert all(cached.cache.tables["vocabulary"].get(k) is v for k, v in vocab.items())
+
+
+def test_an_answer_asked_again_is_kept_until_the_map_or_config_changes(own_map, synth_scene):
+    m, embed = own_map
+    names = [o.name for o in synth_scene.objects]
+    cached, plain = grounders(m, embed, names)
+    first = cached.ground(names[0], mode="explicit")
+    assert "cached" not in first.timings
+    again = cached.ground(names[0], mode="explicit")
+    same(again, first)
+    assert "cached" in again.timings and again.timings["total"] < first.timings["total"]
+    again.objects.clear()   # what a caller does with its answer stays its own
+    again.target = "edited"
+    same(cached.ground(names[0], mode="explicit"), first)
+    # Another mode, result count or camera is another question.
+    assert "cached" not in cached.ground(names[0], mode="explicit", max_results=2).timings
+    cam = np.asarray(m.keyframes[0].cam_to_world, np.float64)
+    assert "cached" not in cached.ground(names[0], mode="explicit", cam_to_world=cam).timings
+    assert "cached" in cached.ground(names[0], mode="explicit", cam_to_world=cam).timings
+    # A config change is seen: the answer is computed again, as an uncached Grounder's.
+    cached.gcfg.min_confidence = plain.gcfg.min_confidence = 1.01
+    r = cached.ground(names[0], mode="explicit")
+    assert "cached" not in r.timings and not r.success
+    same(r, plain.ground(names[0], mode="explicit"))
+    # And so is a change of the map.
+    with torch.no_grad():
+        m.gaussians.means.add_(0.001)
+    assert "cached" not in cached.ground(names[0], mode="explicit").timings

@@ -3,7 +3,8 @@ from changes.
 
 Each table has a scope, the state it is made from:
 - "map": the Gaussians (identity and in-place version of their tensors, their count), the field
-  and the supervision: renders, clusters over the whole map, spacing, background, scene graph;
+  and the supervision: renders, clusters over the whole map, spacing, background, scene graph,
+  answers;
 - "supervision": the keyframes and their masks, embeddings and PCA basis, and what was taught
   (map/taught.py): vocabulary, up direction (its plane too, which refining barely turns),
   registration border; a map that grows or is refined keeps them;
@@ -42,12 +43,12 @@ class MapCache:
 
     SCOPE = {"groups": "map", "renders": "map", "spacing": "map", "background": "map", "graph": "map",
              "vocabulary": "supervision", "border": "supervision", "up": "supervision", "clusters": "field",
-             "taught": "map"}
+             "taught": "map", "answers": "map"}
 
     def __init__(self, enabled: bool = True, sizes: dict[str, int] | None = None):
         self.enabled = enabled
         self.sizes = {"groups": 16, "clusters": 16, "renders": 8, "spacing": 1, "border": 1, "vocabulary": 1,
-                      "background": 8, "graph": 1, "up": 1, "taught": 64, **(sizes or {})}
+                      "background": 8, "graph": 1, "up": 1, "taught": 64, "answers": 32, **(sizes or {})}
         self.tables: dict[str, OrderedDict] = {k: OrderedDict() for k in self.sizes}
         self._states: dict[str, tuple[TensorState, tuple]] = {}
         self.hits = self.misses = self.invalidations = 0

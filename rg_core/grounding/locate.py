@@ -313,7 +313,7 @@ def off_support(g, means: np.ndarray, ids: np.ndarray) -> np.ndarray:
     pts, on = means[ring].astype(np.float64), np.ones(len(ring), bool)
     for _ in range(4):   # least squares, then again without what lies off the plane
         c = pts[on].mean(0)
-        n = np.linalg.svd(pts[on] - c)[2][-1]
+        n = np.linalg.svd(pts[on] - c, full_matrices=False)[2][-1]
         res = np.abs((pts - c) @ n)
         on = res <= max(3 * 1.4826 * float(np.median(res[on])), 0.002)
         if on.sum() < 10:

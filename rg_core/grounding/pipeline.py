@@ -8,6 +8,7 @@ result in masks.py.
 """
 from __future__ import annotations
 
+import copy
 import logging
 import time
 
@@ -205,6 +206,24 @@ class Grounder:
         return res
 
     def _ground(self, query: str, mode: str, max_results: int, view: tuple | None = None) -> GroundingResult:
+        """_answer, kept while the map, field and config are unchanged (cache table "answers"): asked
+        again (a repeated /ground, the confidence check of clicks the map names alike) it costs a
+        lookup. A kept answer's timings are those of its computation, with this call's "total" and
+        "cached" (s)."""
+        t0 = time.perf_counter()
+        if self._not_ready():
+            return self._answer(query, mode, max_results, view)
+        self._check_cache()
+        where = None if view is None else (np.asarray(view[0], np.float64).tobytes(), str(view[1]))
+        key = (str(query), str(mode), int(max_results), where, repr(self.cfg), tuple(self.scene_names))
+        made = []
+        res = self.cache.get("answers", key, lambda: made.append(1) or self._answer(query, mode, max_results, view))
+        res = copy.deepcopy(res)   # callers edit what they get; the kept one stays as computed
+        if not made:
+            res.timings = {**res.timings, "total": time.perf_counter() - t0, "cached": time.perf_counter() - t0}
+        return res
+
+    def _answer(self, query: str, mode: str, max_results: int, view: tuple | None = None) -> GroundingResult:
         t0 = time.perf_counter()
         bad = query_problem(query, self.gcfg.max_query_chars)
         if bad:
