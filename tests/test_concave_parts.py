@@ -4,7 +4,8 @@ import pytest
 import torch
 
 from rg_core.geometry.normals import depth_normals, organised_normals
-from rg_core.grounding.parts import MIN_PART, concave_parts, part_at, seen_normals
+from rg_core.grounding.carve import MaskVotes
+from rg_core.grounding.parts import MIN_PART, concave_parts, part_at, polished, seam_graph, seen_normals
 
 
 def box_surface(lo, hi, h, others=(), rng=None, jitter_deg=0.0):
@@ -211,3 +212,28 @@ def test_a_pile_seen_by_depth_cameras_splits_into_its_boxes():
     for i, click in enumerate([(0.05, 0.05, 0.1), (0.15, 0.05, 0.06)]):
         keep = part_at(pts, nrm, np.array(click))
         assert np.mean(truth[keep] == i) >= 0.95 and keep[truth == i].mean() >= 0.9, (i, keep.sum())
+
+
+@pytest.mark.parametrize("jitter", [0.0, 8.0])
+def test_polishing_moves_strays_at_the_seam_to_the_box_they_continue(jitter):
+    pts, nrm, truth = two_boxes(jitter)
+    W = seam_graph(pts, nrm)
+    seam = np.argsort(np.abs(pts[:, 0] - 0.1))[:12]   # the Gaussians nearest the contact plane x = 0.1
+    side = truth.astype(bool)
+    side[seam] = ~side[seam]                            # a sweep that cut a little off the seam
+    np.testing.assert_array_equal(polished(W, side), truth.astype(bool))
+    label = concave_parts(pts, nrm)                     # and the split ends on the seam exactly
+    assert max(np.mean(label == truth), np.mean(label != truth)) == 1.0
+    # A move that would leave fewer than min_part on a side is not made.
+    few = np.zeros(len(pts), bool)
+    few[np.flatnonzero(truth == 1)[:3]] = True          # 3 of box B's, bound to B's other Gaussians
+    np.testing.assert_array_equal(polished(W, few, min_part=3), few)
+    assert not polished(W, few, min_part=0).any()
+
+
+def test_a_face_only_one_view_sees_is_voted_in_by_that_view_when_asked():
+    # points: seen inside by 1 view of 1; inside 1, outside 1; inside 2 of 2; seen by none; outside 1
+    inside, outside = np.array([1, 1, 2, 0, 0]), np.array([0, 1, 0, 0, 1])
+    v = MaskVotes(inside, outside, inside + outside, np.full(5, 2), np.zeros(5, bool))
+    np.testing.assert_array_equal(v.voted(2), [False, False, True, False, False])
+    np.testing.assert_array_equal(v.voted(2, by_seen=True), [True, False, True, False, False])

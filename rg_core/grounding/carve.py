@@ -49,9 +49,12 @@ class MaskVotes:
         unseen = ((self.inside + self.outside) == 0) & ~self.interior
         return (self.outside > self.inside) | ((unseen | (self.projected < silhouette * self.on_image)) & enough)
 
-    def voted(self, min_votes: int = 2) -> np.ndarray:
-        """bool [N]: seen inside the mask by at least `min_votes` views and outside by fewer."""
-        return (self.inside >= min_votes) & (self.inside > self.outside)
+    def voted(self, min_votes: int = 2, by_seen: bool = False) -> np.ndarray:
+        """bool [N]: seen inside the mask by at least `min_votes` views and outside by fewer.
+        `by_seen`: a point fewer views see needs as many as see it (at least one): a face only one
+        keyframe sees, which min_votes would keep out however its views vote."""
+        need = np.minimum(min_votes, np.maximum(self.inside + self.outside, 1)) if by_seen else min_votes
+        return (self.inside >= need) & (self.inside > self.outside)
 
 
 def depth_edges(depth: np.ndarray, jump_abs: float = 0.03, jump_rel: float = 0.03) -> np.ndarray:

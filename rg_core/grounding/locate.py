@@ -9,7 +9,7 @@ level's the same way), re-chosen by the views' agreement (_agreeing),
 and the object's scale s is the median of those masks' physical scales; with no keyframe seeing the
 point, the median scale of the map's object-level masks. The group is the cluster of instance features at s holding the feature of the
 Gaussian nearest the point, voted on by those masks (seen outside them more often than inside:
-carved; inside several: joined), then by the mask of every view that sees the group so far that is
+carved; inside several, or inside the only one that sees it: joined), then by the mask of every view that sees the group so far that is
 most the group (object_views), cut off the surface it rests on (off_support),
 cut to its piece in space around the point, and split at the concave seams between objects that
 touch (parts.py), keeping the part at the point.
@@ -267,7 +267,7 @@ def object_at(g, point, scale: float | None = None, rule: str = "", cut_support:
             break
         v = mask_votes(means[cand], views, sizes(cand), border_px=g.vote_border(), depth_tol_abs=g.vote_depth_tol())
         need = min(c.min_mask_votes, len(views))
-        ids = np.union1d(np.setdiff1d(ids, cand[v.carved(need)]), cand[v.voted(need)]).astype(np.int64)
+        ids = np.union1d(np.setdiff1d(ids, cand[v.carved(need)]), cand[v.voted(need, by_seen=True)]).astype(np.int64)
         inner = np.union1d(inner, np.intersect1d(grouped, cand[v.interior]))
         ids = np.union1d(ids, np.setdiff1d(inner, cand[v.outside > v.inside]))   # one view cannot place it
         inside = np.isin(cand, ids)

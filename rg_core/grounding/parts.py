@@ -8,7 +8,8 @@ keyframes' depth sees at it; over the group's k-nearest-neighbour graph an edge 
 its normals turn towards each other, ((n_i - n_j) . (p_i - p_j) < 0), and weighs
 exp(-angle / SIGMA), convex edges 1. Normalized cuts (Shi and Malik 2000) bisect the graph while
 a cut is cheap (ncut <= MAX_NCUT), leaves MIN_PART Gaussians each side and runs mostly along
-concave edges (mean weight <= MAX_SEAM); the answer is the part holding the point.
+concave edges (mean weight <= MAX_SEAM), each Gaussian then going to the side it is bound to more
+(polished); the answer is the part holding the point.
 """
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ NORMAL_STEP = 4      # px: depth differences over +-this many pixels (of the key
 MEDIAN_PX = 5        # the keyframe's depth median-filtered over this many pixels first
 SWEEP = 37           # thresholds tried along the Fiedler vector
 FAR = 6.0            # graph edges longer than this x the median edge join nothing (pieces apart)
+POLISH_ROUNDS = 10   # polished: rounds of moving nodes to the side they are bound to more
 
 
 def seen_normals(keyframes, points: np.ndarray, sizes: np.ndarray) -> np.ndarray:
@@ -115,7 +117,24 @@ def _bisect(W, min_part: int, max_seam: float) -> tuple[np.ndarray, float] | Non
     if not ok.any():
         return None
     k = int(np.flatnonzero(ok)[np.argmin(ncut[ok])])
-    return side[k], float(ncut[k])
+    return polished(W, side[k], min_part), float(ncut[k])
+
+
+def polished(W, side: np.ndarray, min_part: int = 1, rounds: int = POLISH_ROUNDS) -> np.ndarray:
+    """side [m] bool of a cut of weights W [m, m] with each node moved to the side it is bound to
+    more (over half its edge weight), until none moves (at most `rounds`; never below min_part a
+    side). A sweep along the Fiedler vector is a relaxation: near the seam it can leave a node
+    cut off from the surface it continues (convex edges to one side, concave ones to the other)."""
+    d = np.asarray(W.sum(1)).reshape(-1)                                                # [m]
+    side = np.asarray(side, bool).copy()
+    for _ in range(rounds):
+        there = np.asarray(W @ side.astype(np.float64)).reshape(-1)                     # [m] weight to the True side
+        flip = np.where(side, there < d - there, there > d - there)
+        new = side ^ flip
+        if not flip.any() or min(int(new.sum()), int((~new).sum())) < min_part:
+            break
+        side = new
+    return side
 
 
 def concave_parts(points: np.ndarray, normals: np.ndarray, min_part: int | None = None,
