@@ -148,6 +148,7 @@ def test_an_answer_asked_again_is_kept_until_the_map_or_config_changes(own_map, 
     again = cached.ground(names[0], mode="explicit")
     same(again, first)
     assert "cached" in again.timings and again.timings["total"] < first.timings["total"]
+    assert all(a is b for a, b in zip(again.objects, first.objects))   # the same objects (the scene graph's too)
     again.objects.clear()   # what a caller does with its answer stays its own
     again.target = "edited"
     same(cached.ground(names[0], mode="explicit"), first)

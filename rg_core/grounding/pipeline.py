@@ -8,7 +8,7 @@ result in masks.py.
 """
 from __future__ import annotations
 
-import copy
+import dataclasses
 import logging
 import time
 
@@ -218,9 +218,12 @@ class Grounder:
         key = (str(query), str(mode), int(max_results), where, repr(self.cfg), tuple(self.scene_names))
         made = []
         res = self.cache.get("answers", key, lambda: made.append(1) or self._answer(query, mode, max_results, view))
-        res = copy.deepcopy(res)   # callers edit what they get; the kept one stays as computed
+        # Callers edit what they get: a new result with its own lists and dicts, the same objects
+        # (the scene graph's own where the answer is from it; nothing edits an answer's objects).
+        res = dataclasses.replace(res, objects=list(res.objects), timings=dict(res.timings), evidence=dict(res.evidence),
+                                  names=list(res.names), point=None if res.point is None else list(res.point))
         if not made:
-            res.timings = {**res.timings, "total": time.perf_counter() - t0, "cached": time.perf_counter() - t0}
+            res.timings.update(total=time.perf_counter() - t0, cached=time.perf_counter() - t0)
         return res
 
     def _answer(self, query: str, mode: str, max_results: int, view: tuple | None = None) -> GroundingResult:
