@@ -166,3 +166,16 @@ def test_an_answer_asked_again_is_kept_until_the_map_or_config_changes(own_map, 
     with torch.no_grad():
         m.gaussians.means.add_(0.001)
     assert "cached" not in cached.ground(names[0], mode="explicit").timings
+
+
+def test_mask_points_are_kept_with_the_supervision(own_map, synth_scene):
+    from rg_core.grounding.stages import mask_points
+
+    m, embed = own_map
+    cached, plain = grounders(m, embed, [o.name for o in synth_scene.objects])
+    kf = m.keyframes[0]
+    want = mask_points(kf, m.supervision.by_keyframe[kf.index].masks[0], 150)
+    got = cached.mask_points(kf, 0, 150)
+    np.testing.assert_array_equal(got, want)
+    assert cached.mask_points(kf, 0, 150) is got and plain.mask_points(kf, 0, 150) is not plain.mask_points(kf, 0, 150)
+    np.testing.assert_array_equal(plain.mask_points(kf, 0, 150), want)

@@ -7,7 +7,7 @@ Each table has a scope, the state it is made from:
   answers;
 - "supervision": the keyframes and their masks, embeddings and PCA basis, and what was taught
   (map/taught.py): vocabulary, up direction (its plane too, which refining barely turns),
-  registration border; a map that grows or is refined keeps them;
+  registration border, masks' points; a map that grows or is refined keeps them;
 - "field": the field's rows (its revision: training, pruning, a scale or PCA refit): clusters of
   one region, keyed by the Gaussians in it, which the map growing elsewhere leaves valid.
 The mapper's optimiser replaces its tensors on every step and pruning or adding Gaussians makes new
@@ -43,12 +43,13 @@ class MapCache:
 
     SCOPE = {"groups": "map", "renders": "map", "spacing": "map", "background": "map", "graph": "map",
              "vocabulary": "supervision", "border": "supervision", "up": "supervision", "clusters": "field",
-             "taught": "map", "answers": "map"}
+             "taught": "map", "answers": "map",
+             "mask_points": "supervision"}
 
     def __init__(self, enabled: bool = True, sizes: dict[str, int] | None = None):
         self.enabled = enabled
         self.sizes = {"groups": 16, "clusters": 16, "renders": 8, "spacing": 1, "border": 1, "vocabulary": 1,
-                      "background": 8, "graph": 1, "up": 1, "taught": 64, "answers": 32, **(sizes or {})}
+                      "background": 8, "graph": 1, "up": 1, "taught": 64, "answers": 32, "mask_points": 1024, **(sizes or {})}
         self.tables: dict[str, OrderedDict] = {k: OrderedDict() for k in self.sizes}
         self._states: dict[str, tuple[TensorState, tuple]] = {}
         self.hits = self.misses = self.invalidations = 0

@@ -15,7 +15,7 @@ import torch
 from ..geometry.conventions import backproject, up_direction
 from ..geometry.points import map_spacing, within
 from ..util import torch_threads
-from . import relations
+from . import relations, stages
 from .carve import mask_depth_offsets, registration_border
 from .grouping import Groups, cluster_instances
 from .vocabulary import build_vocabulary
@@ -190,6 +190,14 @@ def render_keyframe(g, kf):
         with torch_threads(g._outer_threads):
             return g.field.render(kf.K, kf.cam_to_world, w, h)
     return g.cache.get("renders", (kf.index, w, h), make)
+
+
+def mask_points(g, kf, j: int, at_most: int) -> np.ndarray:
+    """stages.mask_points of keyframe `kf`'s supervision mask j: [P, 3], kept with the supervision
+    (a click's views and votes read the same masks' points again and again)."""
+    g._check_cache()
+    return g.cache.get("mask_points", (kf.index, int(j), int(at_most)),
+                       lambda: stages.mask_points(kf, g.mapper.supervision.by_keyframe[kf.index].masks[j], at_most))
 
 
 def scene_graph(g) -> list:

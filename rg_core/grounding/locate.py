@@ -76,15 +76,16 @@ def covering_masks(g, point: np.ndarray) -> list[tuple[object, int, int, float]]
         out.append((kf, *_object_mask(sup, hold)))
         sups.append(sup)
         holds.append(hold)
-    return _agreeing(out, sups, holds)
+    return _agreeing(out, sups, holds, points=lambda kf, j: g.mask_points(kf, j, AGREE_POINTS))
 
 
-def _agreeing(covering: list, sups: list, holds: list, rounds: int = AGREE_ROUNDS) -> list:
+def _agreeing(covering: list, sups: list, holds: list, rounds: int = AGREE_ROUNDS, points=None) -> list:
     """`covering` with each view's mask re-chosen among the masks holding the point's pixel (`holds`)
     as the one that agrees best with the other views' choices: the mean over the other views of the
     F1 of (its points seen there inside their mask, their points seen here inside it); the whole
     object is the mask the views agree on, where one view's depth cut keeps a part or joins a
-    neighbour. Starts from _object_mask's choice; ties keep it."""
+    neighbour. Starts from _object_mask's choice; ties keep it. `points(keyframe, mask index)`:
+    the mask's points (default: mask_points of at most AGREE_POINTS)."""
     from .carve import sight
 
     if len(covering) < 2 or all(len(h) < 2 for h in holds):
@@ -98,7 +99,8 @@ def _agreeing(covering: list, sups: list, holds: list, rounds: int = AGREE_ROUND
     for a, (kf, hold) in enumerate(zip(kfs, holds)):
         for j in (hold if len(hold) > 1 else [covering[a][1]]):
             masks[a, int(j)] = sups[a].masks[j]
-            pts[a, int(j)] = mask_points(kf, masks[a, int(j)], AGREE_POINTS)
+            pts[a, int(j)] = (points(kf, int(j)) if points is not None
+                              else mask_points(kf, masks[a, int(j)], AGREE_POINTS))
     keys = list(pts)
     ends = np.cumsum([len(pts[k]) for k in keys])
     _, seen, r, u = sight(np.concatenate([pts[k] for k in keys]), Ks, c2w, depths, np.zeros(int(ends[-1])))  # [V, P]
@@ -188,7 +190,7 @@ def object_views(g, points: np.ndarray, sizes: np.ndarray, min_seen: int = 5) ->
         if len(hold) > 1:   # the mask that is most the group: F1 of (share of the group in it, share of it near the group)
             near = []
             for j in hold:
-                q = mask_points(kf, sup.masks[j], AGREE_POINTS)
+                q = g.mask_points(kf, j, AGREE_POINTS)
                 near.append(float((tree.query(q, distance_upper_bound=reach)[0] <= reach).mean()) if len(q) else 0.0)
             f1 = 2 * share[hold] * np.asarray(near) / np.maximum(share[hold] + np.asarray(near), 1e-9)
             first = _object_mask(sup, hold)[0]

@@ -174,6 +174,10 @@ class Grounder:
         """The field rendered from a keyframe (latent, colour, depth, alpha), cached per keyframe."""
         return derived.render_keyframe(self, kf)
 
+    def mask_points(self, kf, j: int, at_most: int) -> np.ndarray:
+        """[P, 3] world points of keyframe `kf`'s supervision mask j (stages.mask_points), cached."""
+        return derived.mask_points(self, kf, j, at_most)
+
     def scene_graph(self) -> list:
         """The map's objects (relations.build_graph over the vocabulary), cached with the map."""
         return derived.scene_graph(self)
