@@ -49,7 +49,8 @@ class MapCache:
     def __init__(self, enabled: bool = True, sizes: dict[str, int] | None = None):
         self.enabled = enabled
         self.sizes = {"groups": 16, "clusters": 16, "renders": 8, "spacing": 1, "border": 1, "vocabulary": 1,
-                      "background": 8, "graph": 1, "up": 1, "taught": 64, "answers": 32, "mask_points": 1024, **(sizes or {})}
+                      "background": 8, "graph": 1, "up": 1, "taught": 64, "answers": 32, "mask_points": 1024,
+                      **(sizes or {})}
         self.tables: dict[str, OrderedDict] = {k: OrderedDict() for k in self.sizes}
         self._states: dict[str, tuple[TensorState, tuple]] = {}
         self.hits = self.misses = self.invalidations = 0

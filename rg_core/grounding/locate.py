@@ -5,14 +5,14 @@ The scale rule (docs/pipeline.md, "Point and teach"): the keyframes that see the
 agrees with it) each give the supervision mask holding its pixel that is the whole object (the
 largest at the group level, cut at depth jumps, unless it spans more than twice the object level's
 scale: objects that touch, then the object level's; with no object-level mask there, the part
-level's the same way), re-chosen by the views' agreement (_agreeing),
-and the object's scale s is the median of those masks' physical scales; with no keyframe seeing the
-point, the median scale of the map's object-level masks. The group is the cluster of instance features at s holding the feature of the
-Gaussian nearest the point, voted on by those masks (seen outside them more often than inside:
-carved; inside several, or inside the only one that sees it: joined), then by the mask of every view that sees the group so far that is
-most the group (object_views), cut off the surface it rests on (off_support),
-cut to its piece in space around the point, and split at the concave seams between objects that
-touch (parts.py), keeping the part at the point.
+level's the same way), re-chosen by the views' agreement (_agreeing), and the object's scale s is
+the median of those masks' physical scales; with no keyframe seeing the point, the median scale of
+the map's object-level masks. The group is the cluster of instance features at s holding the
+feature of the Gaussian nearest the point, voted on by those masks (seen outside them more often
+than inside: carved; inside several, or inside the only one that sees it: joined), then by the
+mask of every view that sees the group so far that is most the group (object_views), cut off the
+surface it rests on (off_support), cut to its piece in space around the point, and split at the
+concave seams between objects that touch (parts.py), keeping the part at the point.
 """
 from __future__ import annotations
 

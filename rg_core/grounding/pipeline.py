@@ -224,8 +224,9 @@ class Grounder:
         res = self.cache.get("answers", key, lambda: made.append(1) or self._answer(query, mode, max_results, view))
         # Callers edit what they get: a new result with its own lists and dicts, the same objects
         # (the scene graph's own where the answer is from it; nothing edits an answer's objects).
-        res = dataclasses.replace(res, objects=list(res.objects), timings=dict(res.timings), evidence=dict(res.evidence),
-                                  names=list(res.names), point=None if res.point is None else list(res.point))
+        res = dataclasses.replace(res, objects=list(res.objects), timings=dict(res.timings),
+                                  evidence=dict(res.evidence), names=list(res.names),
+                                  point=None if res.point is None else list(res.point))
         if not made:
             res.timings.update(total=time.perf_counter() - t0, cached=time.perf_counter() - t0)
         return res
